@@ -99,7 +99,7 @@ def describe_frame(frame: Frame, direction: Optional[str],
             ans = decode_answer(frame, request) if frame.opcode == OpCode.ANSWER else None
             if ans is None:
                 out.problem = "an RX frame whose op code is not an answer (0x00)"
-                out.data = (frame.data)
+                out.data = bytes(frame.data)
                 return out, None
             out.name = type(ans).__name__ if request is not None else "Answer"
             out.error_code = ans.error_code
@@ -117,13 +117,13 @@ def describe_frame(frame: Frame, direction: Optional[str],
         req = decode_request(frame)
     except RemoteProtocolError as exc:
         out.problem = str(exc)
-        out.data = (frame.data)
+        out.data = bytes(frame.data)
         return out, None
     if hasattr(req, "index"):
         out.node, out.index, out.subindex = req.node, req.index, req.subindex  # type: ignore[union-attr]
-        out.data = (frame.data[4:])
+        out.data = bytes(frame.data[4:])
     else:
-        out.data = (frame.data)
+        out.data = bytes(frame.data)
     if isinstance(req, SendNMTService):
         out.node = req.node
         out.extra["command"] = f"0x{req.command:02X}"
@@ -131,11 +131,11 @@ def describe_frame(frame: Frame, direction: Optional[str],
         out.extra["toggle"] = int(req.toggle)
     if isinstance(req, SegmentWrite):
         out.extra["last"] = int(req.last)
-        out.data = (req.data)
+        out.data = bytes(req.data)
     if isinstance(req, InitiateSegmentedWrite):
         out.extra["length"] = req.length
     if isinstance(req, WriteObject):
-        out.data = (req.data)
+        out.data = bytes(req.data)
     return out, req
 
 

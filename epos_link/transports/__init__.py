@@ -1,0 +1,35 @@
+"""Transports selected by URL, python-can style: a registry of
+``scheme -> (module, factory)`` imported only when used, so a missing optional
+dependency (pyusb, libusb) breaks only its own scheme.
+
+* ``usb://``, ``usb://?serial=XXXX``  EPOS4 native USB through pyusb
+* ``sim://?node_id=1&drives=2,3``    the in-process simulator (tests, demos)
+* anything else                      pyserial's ``serial_for_url``: device paths
+  (``/dev/ttyUSB0``, ``COM3``), ``socket://``, ``rfc2217://``, ``loop://``, ``spy://``
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from .base import Transport
+
+# scheme -> "module:factory"; the factory takes (url, **options) and returns a Transport.
+REGISTRY: dict[str, str] = {
+    "usb": "epos_link.transports.usb:open_usb",
+    "sim": "epos_link.simulator.transport:open_sim",
+    "replay": "epos_link.transports.replay:open_replay",
+}
+DEFAULT = "epos_link.transports.serial:open_serial"
+
+
+def open_transport(url: str, **options: Any) -> Transport:
+    scheme = url.split("://", 1)[0].lower() if "://" in url else ""
+    target = REGISTRY.get(scheme, DEFAULT)
+    module_name, factory = target.split(":")
+    module = importlib.import_module(module_name)
+    transport: Transport = getattr(module, factory)(url, **options)
+    return transport
+
+
+__all__ = ["Transport", "open_transport", "REGISTRY"]
