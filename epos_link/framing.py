@@ -1,4 +1,4 @@
-"""Frames of MAXON SERIAL V2: encoding and a resynchronising stream decoder.
+r"""Frames of MAXON SERIAL V2: encoding and a resynchronising stream decoder.
 
 Guide 2.2.2 (frame structure) and 2.2.4 (character stuffing)::
 

@@ -50,7 +50,7 @@ class Decoded:
     crc_ok: Optional[bool] = None
     extra: dict[str, Any] = field(default_factory=dict)
     problem: Optional[str] = None  # set when the bytes are not a (well-formed) frame
-    raw: str = ""
+    raw: bytes = b""
 
     def as_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -63,13 +63,13 @@ class Decoded:
         out.update(self.extra)
         if self.problem:
             out["problem"] = self.problem
-            out["raw"] = self.raw
+            out["raw"] = self.raw.hex()
         return out
 
     def as_text(self) -> str:
         head = f"{self.direction or '--'} "
         if self.opcode is None:
-            return f"{head}not a frame: {self.problem} [{self.raw}]"
+            return f"{head}not a frame: {self.problem} [{_hex(self.raw)}]"
         parts = [f"{self.name} (0x{self.opcode:02X})"]
         if self.node is not None:
             parts.append(f"node={self.node}")
@@ -165,7 +165,7 @@ class StreamDecoder:
                 pair.update(self.direction, req)
                 yield line
             except RemoteProtocolError as exc:
-                yield Decoded(self.direction, None, "not a frame", problem=str(exc), raw=_hex(exc.raw))
+                yield Decoded(self.direction, None, "not a frame", problem=str(exc), raw=exc.raw)
 
     def feed(self, data: bytes, pair: "Pairing") -> Iterator[Decoded]:
         self.decoder.feed(data)

@@ -1,0 +1,43 @@
+"""Shared test habits: feed a stream three ways (h11's test_io style)."""
+from __future__ import annotations
+
+from typing import Callable, Iterator
+
+
+def three_ways(stream: bytes, junk: bytes = b"\x11\x22\x33") -> Iterator[tuple[str, list[bytes], bytes]]:
+    """(label, chunks, prefix-junk): whole, byte by byte, and with junk before and after."""
+    yield "whole", [stream], b""
+    yield "bytewise", [stream[i:i + 1] for i in range(len(stream))], b""
+    yield "junk", [junk + stream + junk], junk
+
+
+def feed_all(decoder_factory: Callable, chunks: list[bytes]) -> tuple[list, list]:
+    """Feed chunks into a FrameDecoder; return (frames, errors) until the end of input."""
+    from epos_link.errors import RemoteProtocolError
+    from epos_link.framing import NEED_DATA
+
+    dec = decoder_factory()
+    frames: list = []
+    errors: list = []
+
+    def drain() -> None:
+        while True:
+            try:
+                item = dec.next_frame()
+            except RemoteProtocolError as exc:
+                errors.append(exc)
+                continue
+            if item is NEED_DATA:
+                return
+            frames.append(item)
+
+    for chunk in chunks:
+        dec.feed(chunk)
+        drain()
+    while True:
+        try:
+            dec.close()
+            break
+        except RemoteProtocolError as exc:
+            errors.append(exc)
+    return frames, errors

@@ -1,0 +1,73 @@
+"""`epos-link decode` as a user runs it: a real subprocess."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+FIXTURE = Path(__file__).resolve().parent.parent / "fixtures" / "guide_read_home_position.txt"
+
+
+def decode(*args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "epos_link", "decode", *args], input=stdin,
+                          capture_output=True, text=True, timeout=30)
+
+
+def test_request_hex_in_one_argument() -> None:
+    out = decode("9002600201B030002E62", "--json")
+    assert out.returncode == 0, out.stderr
+    (obj,) = [json.loads(line) for line in out.stdout.splitlines()]
+    assert obj["opcode"] == 0x60 and obj["name"] == "ReadObject"
+    assert (obj["node"], obj["index"], obj["subindex"]) == (1, 0x30B0, 0)
+    assert obj["data"] == "" and obj["error_code"] is None and obj["crc_ok"] is True
+
+
+def test_answer_hex_in_many_arguments() -> None:
+    args = "90 02 00 04 00 00 00 00 01 90 90 00 00 9A 5C".split()
+    out = decode(*args, "--responses", "--json")
+    assert out.returncode == 0, out.stderr
+    (obj,) = [json.loads(line) for line in out.stdout.splitlines()]
+    assert obj["opcode"] == 0 and obj["error_code"] == 0 and obj["crc_ok"] is True
+    assert bytes.fromhex(obj["data"]) == bytes.fromhex("01 90 00 00")
+    assert obj["node"] is None and obj["index"] is None and obj["subindex"] is None
+
+
+def test_text_output() -> None:
+    out = decode("90 02 00 04 00 00 00 00 01 90 90 00 00 9A 5C", "--responses")
+    assert "error=0x00000000 (No abort)" in out.stdout
+    assert "data=[01 90 00 00]" in out.stdout and "crc=ok" in out.stdout
+
+
+def test_stdin_hex() -> None:
+    out = decode(stdin="90 02 60 02 01 B0 30 00 2E 62\n")
+    assert "ReadObject (0x60) node=1 index=0x30B0 subindex=0x00" in out.stdout
+
+
+@pytest.mark.parametrize("how", ["--file", "positional"])
+def test_fixture_file(how: str) -> None:
+    args = ["--file", str(FIXTURE)] if how == "--file" else [str(FIXTURE)]
+    out = decode(*args, "--json")
+    assert out.returncode == 0, out.stderr
+    tx, rx = [json.loads(line) for line in out.stdout.splitlines()]
+    assert tx["direction"] == "TX" and tx["index"] == 0x30B0
+    assert rx["direction"] == "RX" and rx["name"] == "ReadObjectAnswer"
+    assert rx["data"] == "01900000"
+
+
+def test_bad_crc_and_junk_are_reported() -> None:
+    out = decode("ff 90 02 60 02 01 B0 30 00 2E 63 aa", "--json")
+    assert out.returncode == 1
+    objs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [o["name"] for o in objs] == ["not a frame", "ReadObject", "not a frame"]
+    assert objs[1]["crc_ok"] is False
+    assert objs[0]["raw"] == "ff" and objs[2]["raw"] == "aa"
+
+
+@pytest.mark.parametrize("args,stdin", [(["zz"], ""), ([], ""), (["--file", "/nonexistent"], "")])
+def test_bad_input_is_a_message_not_a_traceback(args: list[str], stdin: str) -> None:
+    out = decode(*args, stdin=stdin)
+    assert out.returncode == 2
+    assert "Traceback" not in out.stderr and "epos-link decode:" in out.stderr

@@ -1,0 +1,170 @@
+"""framing.py: the guide's frames, three-way feeding, damaged streams, properties."""
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from epos_link.errors import (
+    CrcError,
+    FrameLengthError,
+    JunkBytesError,
+    LocalProtocolError,
+    RemoteProtocolError,
+    StuffingError,
+    TruncatedFrameError,
+)
+from epos_link.framing import NEED_DATA, Frame, FrameDecoder, decode_frames, encode_frame
+from tests.helpers import feed_all, three_ways
+from tests.reference import GUIDE_ANSWER, GUIDE_REQUEST, reference_frame
+
+REQ_FRAME = Frame(0x60, bytes.fromhex("01 B0 30 00"), 0x622E)
+ANS_FRAME = Frame(0x00, bytes.fromhex("00 00 00 00 01 90 00 00"), 0x5C9A)
+
+
+def test_encode_guide_request() -> None:
+    assert encode_frame(0x60, bytes.fromhex("01 B0 30 00")) == GUIDE_REQUEST
+
+
+def test_encode_guide_answer_is_stuffed() -> None:
+    assert encode_frame(0x00, ANS_FRAME.data) == GUIDE_ANSWER
+
+
+@pytest.mark.parametrize("stream,expected", [
+    (GUIDE_REQUEST, [REQ_FRAME]),
+    (GUIDE_ANSWER, [ANS_FRAME]),
+    (GUIDE_REQUEST + GUIDE_ANSWER, [REQ_FRAME, ANS_FRAME]),
+])
+def test_three_ways(stream: bytes, expected: list[Frame]) -> None:
+    for label, chunks, junk in three_ways(stream):
+        frames, errors = feed_all(FrameDecoder, chunks)
+        assert frames == expected, label
+        if junk:
+            assert [type(e) for e in errors] == [JunkBytesError, JunkBytesError], label
+            assert b"".join(e.raw for e in errors) == junk + junk
+        else:
+            assert errors == [], label
+
+
+BAD_CRC = bytes.fromhex("90 02 60 02 01 B0 30 00 2E 63")
+# Damaged streams (pymodbus style): (name, stream, expected error types in order, good frames)
+DAMAGED = [
+    ("junk in front", b"\xAA\x55" + GUIDE_REQUEST, [JunkBytesError], [REQ_FRAME]),
+    ("bad crc then good", BAD_CRC + GUIDE_ANSWER, [CrcError], [ANS_FRAME]),
+    ("lone DLE in frame", bytes.fromhex("90 02 60 02 01 90 30 00 2E 62") + GUIDE_REQUEST,
+     [StuffingError, JunkBytesError], [REQ_FRAME]),
+    ("truncated by new sync", GUIDE_REQUEST[:6] + GUIDE_ANSWER,
+     [TruncatedFrameError], [ANS_FRAME]),
+    ("truncated at end", GUIDE_REQUEST + GUIDE_ANSWER[:9], [TruncatedFrameError], [REQ_FRAME]),
+    ("oversize len", bytes.fromhex("90 02 60 91 00 00") + GUIDE_REQUEST,
+     [FrameLengthError, JunkBytesError], [REQ_FRAME]),
+    ("junk after", GUIDE_REQUEST + b"\x01\x02", [JunkBytesError], [REQ_FRAME]),
+    ("lone DLE at end", GUIDE_REQUEST + b"\x90", [JunkBytesError], [REQ_FRAME]),
+    ("DLE DLE STX in junk is a sync", b"\x90" + GUIDE_REQUEST, [JunkBytesError], [REQ_FRAME]),
+]
+
+
+@pytest.mark.parametrize("name,stream,errs,good", DAMAGED, ids=[d[0] for d in DAMAGED])
+def test_damaged_streams(name: str, stream: bytes, errs: list[type], good: list[Frame]) -> None:
+    for label, chunks, junk in three_ways(stream, junk=b""):
+        frames, errors = feed_all(FrameDecoder, chunks)
+        assert frames == good, label
+        assert [type(e) for e in errors] == errs, label
+
+
+def test_bad_crc_frame_is_still_decoded() -> None:
+    frames, errors = feed_all(FrameDecoder, [BAD_CRC])
+    assert frames == []
+    (err,) = errors
+    assert isinstance(err, CrcError)
+    assert err.frame == Frame(0x60, bytes.fromhex("01 B0 30 00"), 0x632E, crc_ok=False)
+    assert err.raw == BAD_CRC
+
+
+def test_no_byte_is_lost_silently() -> None:
+    stream = b"\x01" + BAD_CRC + b"\x90\x90" + GUIDE_REQUEST[:5] + GUIDE_ANSWER + b"\x07"
+    frames, errors = feed_all(FrameDecoder, [stream])
+    reported = sum(len(e.raw) for e in errors) + len(GUIDE_ANSWER)
+    assert reported == len(stream)
+    assert frames == [ANS_FRAME]
+
+
+def test_junk_is_bounded() -> None:
+    dec = FrameDecoder(max_junk=64)
+    seen = 0
+    for _ in range(1000):
+        dec.feed(b"\x55" * 100)
+        while True:
+            try:
+                if dec.next_frame() is NEED_DATA:
+                    break
+            except JunkBytesError as exc:
+                seen += len(exc.raw)
+        assert dec.pending < 64 + 100
+    assert seen >= 1000 * 100 - 64
+
+
+def test_feed_refuses_unbounded_pending() -> None:
+    dec = FrameDecoder(max_pending=1000)
+    dec.feed(b"\x00" * 1000)
+    with pytest.raises(LocalProtocolError):
+        dec.feed(b"\x00")
+
+
+@pytest.mark.parametrize("opcode,data", [(0x100, b""), (0x60, b"\x01"), (0x60, bytes(288))])
+def test_encode_refuses_bad_frames(opcode: int, data: bytes) -> None:
+    with pytest.raises(LocalProtocolError):
+        encode_frame(opcode, data)
+
+
+def test_max_length_frame() -> None:
+    data = bytes(range(256)) + bytes(30)  # 286 bytes = 143 words, one 0x90 inside
+    assert decode_frames(encode_frame(0x00, data)) == [
+        Frame(0x00, data, decode_frames(encode_frame(0x00, data))[0].crc)]
+
+
+words = st.binary(max_size=286).filter(lambda b: len(b) % 2 == 0)
+dle_heavy = st.lists(st.sampled_from([b"\x90", b"\x02", b"\x90\x90", b"\x00", b"\x90\x02"]),
+                     max_size=80).map(b"".join).map(lambda b: b[: len(b) // 2 * 2][:286])
+
+
+@given(st.integers(0, 255), st.one_of(words, dle_heavy))
+def test_round_trip_and_reference(opcode: int, data: bytes) -> None:
+    wire = encode_frame(opcode, data)
+    assert wire == reference_frame(opcode, data)
+    (frame,) = decode_frames(wire)
+    assert (frame.opcode, frame.data, frame.crc_ok) == (opcode, data, True)
+
+
+@given(st.lists(st.tuples(st.integers(0, 255), st.one_of(words, dle_heavy)), min_size=1,
+                max_size=5), st.data())
+def test_arbitrary_chunking(messages: list[tuple[int, bytes]], data: st.DataObject) -> None:
+    stream = b"".join(encode_frame(op, d) for op, d in messages)
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=20)))
+    chunks = [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)])]
+    frames, errors = feed_all(FrameDecoder, chunks)
+    assert errors == []
+    assert [(f.opcode, f.data) for f in frames] == messages
+
+
+@settings(max_examples=300)
+@given(st.lists(st.one_of(st.binary(max_size=40), st.sampled_from(
+    [b"\x90", b"\x90\x02", b"\x90\x90", b"\x90\x02\x60\x02", GUIDE_REQUEST, GUIDE_ANSWER])),
+    max_size=30))
+def test_random_bytes_only_raise_protocol_errors(chunks: list[bytes]) -> None:
+    dec = FrameDecoder(max_junk=50)
+    for chunk in chunks:
+        dec.feed(chunk)
+        while True:
+            try:
+                if dec.next_frame() is NEED_DATA:
+                    break
+            except RemoteProtocolError:
+                pass
+        assert dec.pending <= 50 + 600 + len(chunk)
+    for _ in range(3):
+        try:
+            dec.close()
+            break
+        except RemoteProtocolError:
+            pass
+    assert dec.pending == 0

@@ -1,0 +1,29 @@
+"""The sans-I/O modules import no I/O, clock or concurrency module (STYLE.md)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+PURE = [
+    "epos_link.errors", "epos_link.codes", "epos_link.crc", "epos_link.framing",
+    "epos_link.messages", "epos_link.capture",
+]
+FORBIDDEN = ["serial", "usb", "socket", "asyncio", "threading", "time", "select", "can", "canopen"]
+
+
+@pytest.mark.parametrize("module", PURE)
+def test_pure_module_imports_no_io(module: str) -> None:
+    code = (
+        "import sys\n"
+        "before = set(sys.modules)\n"
+        f"import {module}\n"
+        "new = set(sys.modules) - before\n"
+        f"bad = [m for m in {FORBIDDEN!r} if m in new]\n"
+        "print(','.join(bad))\n"
+    )
+    # -I: isolated, -S: no site, so nothing but the module under test is imported
+    out = subprocess.run([sys.executable, "-S", "-c", f"import sys; sys.path[:0] = {sys.path!r}\n" + code],
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", f"{module} imports {out.stdout.strip()}"
