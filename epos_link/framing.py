@@ -154,6 +154,15 @@ class FrameDecoder:
                 continue
             buf, body = self._buf, self._body
             i, n = 0, len(buf)
+            if not body and n >= 2 and buf[1] <= MAX_LEN_WORDS:
+                # Fast path: the whole frame is buffered and holds no DLE, so
+                # there is nothing to unstuff (the common case on a healthy link).
+                end = 2 + 2 * buf[1] + 2
+                if n >= end and buf.find(DLE, 0, end) < 0:
+                    body += buf[:end]
+                    self._raw += buf[:end]
+                    del buf[:end]
+                    return self._finish()
             while len(body) < self._need and i < n:
                 want = self._need - len(body)
                 q = buf.find(DLE, i, i + want)
