@@ -1,0 +1,97 @@
+"""The error tree of tcp_bridge.
+
+::
+
+    BridgeError
+     +-- InvalidCommand (ValueError)      reply CAN: unparseable line, unknown axis or
+     |    |                               command, bad value, not readable / not writable
+     |    +-- LineTooLong                 a request line above the splitter's limit
+     +-- DeviceFailure                    reply NAK: the device transfer failed or the
+     |                                    node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
+     +-- ReplyOverflow (ValueError)       reply NAK: a value read from the device cannot be
+     |                                    written into the 30-byte reply (spec 2.2.2)
+     +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
+                                          format of spec 2.2.2 / 2.3.2
+
+The spec (PSI TCP-IP to CANopen gateway, rev 2.3, 2.2.2) has three answers:
+ACK (executed), NAK (not executed; the drive did not answer) and CAN (the
+command is not valid). :func:`tcp_bridge.protocol.status_for` maps this tree
+onto them, so the server has exactly one place that turns an exception into a
+reply.
+
+:class:`InvalidCommand` carries the parts of the request header that could be
+recognised (``axis``, ``kind``, ``cmd``; each may be ``None``) so that even a
+rejected request is answered with its own header, e.g. ``3 S 2<CAN><CR>``.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+
+class BridgeError(Exception):
+    """Base of every error raised by tcp_bridge."""
+
+
+class InvalidCommand(BridgeError, ValueError):
+    """The request is not a valid command; the gateway answers CAN (spec 2.2.2).
+
+    ``axis``, ``kind`` (``"S"`` or ``"R"``) and ``cmd`` are whatever could be
+    recognised from the request, ``None`` for the parts that could not.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        axis: Optional[int] = None,
+        kind: Optional[str] = None,
+        cmd: Optional[int] = None,
+    ) -> None:
+        super().__init__(message)
+        self.axis = axis
+        self.kind = kind
+        self.cmd = cmd
+
+
+class LineTooLong(InvalidCommand):
+    """A request line longer than the splitter's ``max_line`` bytes.
+
+    ``head`` holds the first ``max_line`` bytes of the line, from which the
+    header fields (``axis``, ``kind``, ``cmd``) were recognised if possible.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        head: bytes = b"",
+        limit: int = 0,
+        axis: Optional[int] = None,
+        kind: Optional[str] = None,
+        cmd: Optional[int] = None,
+    ) -> None:
+        super().__init__(message, axis=axis, kind=kind, cmd=cmd)
+        self.head = bytes(head)
+        self.limit = limit
+
+
+class DeviceFailure(BridgeError):
+    """The device transfer failed or the node is absent; the gateway answers NAK.
+
+    ``code`` is the CANopen SDO abort code when there was one.
+    """
+
+    def __init__(self, message: str, code: Optional[int] = None) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class ReplyOverflow(BridgeError, ValueError):
+    """A value whose integer part does not fit into the 30-byte reply (spec 2.2.2).
+
+    The command itself was valid, so the gateway answers NAK, not CAN.
+    """
+
+
+class MalformedReply(BridgeError, ValueError):
+    """Bytes received by a client that are not a 30-byte reply of spec 2.2.2 / 2.3.2."""

@@ -1,0 +1,143 @@
+"""User units, drive units and value parsing for the PSI gateway, without I/O.
+
+Spec 3.6: the "Position UserUnit factor" (1, 10, 100, 1000, ...) says how user
+values are "scaled and stored in SDO objects", because the gateway keeps only
+integers. Conventions used here (``factor`` > 0, ``inversion`` 1 or -1 from
+command 22, ``offset`` in user units from command 25)::
+
+    user-unit value   drive = round(user * factor)                    05 06 13 23..28 41..43
+                      user  = drive / factor
+    position          drive = round((user - offset) * factor) * inversion   02 -> 0x607A
+                      user  = drive * inversion / factor + offset            12
+    display limits    inversion  1: 33 from 0x607D/2, 34 from 0x607D/1       33 34
+                      inversion -1: 33 from 0x607D/1, 34 from 0x607D/2
+                      each converted as a position
+
+So a finished move to ``S02=x`` reads back ``R12 = x``, and an inverted axis
+shows its drive's minimum limit as its positive limit (the parenthesised
+objects of 33/34 in the spec's table). Stored parameters marked ``*`` hold
+``round(user * factor)`` (spec 4 footnote).
+
+Arithmetic is decimal, from the shortest text of each float, so 1.0005 mm at
+factor 1000 is 1000.5 -> 1001 as a person computes it, and rounding is half away
+from zero, so inverting an axis never changes a magnitude. Results outside
+INTEGER32 raise :class:`InvalidCommand` (answered CAN).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from decimal import ROUND_HALF_UP, Decimal
+from typing import Tuple, Union
+
+from .commands import INT32, CommandSpec, ValueType
+from .errors import InvalidCommand
+from .protocol import NUMBER_RE
+
+Number = Union[int, float]
+
+
+def _dec(value: Number) -> Decimal:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"expected a number, not {value!r}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise InvalidCommand(f"{value!r} is not a finite number")
+    return Decimal(value) if isinstance(value, int) else Decimal(repr(value))
+
+
+def _to_int32(d: Decimal, what: str, sign: int = 1) -> int:
+    # ROUND_HALF_UP is decimal's "half away from zero"; the sign is applied
+    # after rounding so that inversion never changes a magnitude.
+    n = int(d.to_integral_value(rounding=ROUND_HALF_UP)) * sign
+    if not INT32[0] <= n <= INT32[1]:
+        raise InvalidCommand(f"{what} {n} is outside INTEGER32")
+    return n
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """The conversion parameters of one axis (spec 3.6, commands 22 and 25)."""
+
+    factor: int = 1
+    inversion: int = 1
+    offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor <= 0:
+            raise ValueError(f"position factor must be a positive integer, not {self.factor!r}")
+        if self.inversion not in (1, -1):
+            raise ValueError(f"axis inversion must be 1 or -1, not {self.inversion!r}")
+        _dec(self.offset)  # rejects NaN and infinity
+
+    def to_drive(self, user: Number) -> int:
+        """``round(user * factor)``: a user-unit value (not a position) for the drive."""
+        return _to_int32(_dec(user) * self.factor, "scaled value")
+
+    def from_drive(self, raw: int) -> float:
+        """``raw / factor``: a drive value (not a position) in user units."""
+        return float(_dec(raw) / self.factor)
+
+    def position_to_drive(self, user: Number) -> int:
+        """``round((user - offset) * factor) * inversion``: a user position for the drive."""
+        return _to_int32((_dec(user) - _dec(self.offset)) * self.factor, "position", self.inversion)
+
+    def position_from_drive(self, raw: int) -> float:
+        """``raw * inversion / factor + offset``: a drive position in user units (12)."""
+        return float(_dec(raw) * self.inversion / self.factor + _dec(self.offset))
+
+    def display_limits(self, raw_min: int, raw_max: int) -> Tuple[float, float]:
+        """(33 Display Limit Positive, 34 Display Limit Negative) from 0x607D/1, /2.
+
+        Which object each command reads is ``CommandSpec.object_for(inversion)``.
+        """
+        low = self.position_from_drive(raw_min)
+        high = self.position_from_drive(raw_max)
+        return (high, low) if self.inversion == 1 else (low, high)
+
+
+def stored_parameter(user: Number, factor: int) -> int:
+    """The integer kept for a ``*`` parameter (spec 4 footnote): ``round(user * factor)``."""
+    return Scaling(factor).to_drive(user)
+
+
+def parse_value(spec: CommandSpec, text: str) -> Number:
+    """The value of a write request for command ``spec``; :class:`InvalidCommand` if bad.
+
+    INT commands take a decimal or 0x-hex integer; "1.0" is accepted as 1 (a
+    client formatting with %f), "1.5" is not. FLOAT (user-unit) commands take a
+    decimal only. The result is checked against ``spec.choices`` and, for INT,
+    ``spec.value_range``; user-unit values are range-checked once scaled (see
+    :class:`Scaling`). The error carries ``cmd`` only: answer it with the
+    request's header (``protocol.format_error_reply(exc, request)``).
+    """
+
+    def invalid(why: str) -> InvalidCommand:
+        return InvalidCommand(f"command {spec.number} ({spec.name}): {why}", cmd=spec.number)
+
+    # The request grammar is checked again: this is a public function, and
+    # Decimal alone would take "1e999999" or "NaN".
+    if not isinstance(text, str) or not NUMBER_RE.fullmatch(text):
+        raise invalid(f"{text!r} is not a decimal or 0x-hex number")
+    is_hex = text[:2] in ("0x", "0X")
+    number = int(text, 16) if is_hex else Decimal(text)
+    if spec.value_type is ValueType.TEXT:
+        raise invalid("takes no value")
+    if spec.value_type is ValueType.FLOAT:
+        if is_hex:
+            raise invalid(f"{text!r}: user-unit values are decimal")
+        result: Number = float(number)
+        if not math.isfinite(result):
+            raise invalid(f"{text!r} is out of range")
+        if spec.choices is not None and result not in spec.choices:
+            raise invalid(f"{text!r} is not one of {sorted(spec.choices)}")
+        return result
+    if isinstance(number, Decimal):
+        if number != number.to_integral_value():
+            raise invalid(f"{text!r} is not an integer")
+        number = int(number)
+    if spec.choices is not None and number not in spec.choices:
+        raise invalid(f"{number} is not one of {sorted(spec.choices)}")
+    low, high = spec.value_range
+    if not low <= number <= high:
+        raise invalid(f"{number} is outside {low}..{high}")
+    return number
