@@ -1,0 +1,251 @@
+"""Serving the simulated EPOS4 over a pseudo-terminal or TCP, with link faults.
+
+The device logic is pure (:mod:`.device`); this module adds what a real link
+has: timing (a baud rate, the device's frame timeout of guide 2.2.7) and
+faults (dropped, corrupted or delayed reply bytes, silence, disconnects).
+One host at a time, like the real device.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import random
+import select
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional, Protocol
+
+log = logging.getLogger(__name__)
+
+BITS_PER_BYTE = 10  # 8N1: start, 8 data, stop (guide 2.2.6)
+
+
+class Device(Protocol):
+    def receive(self, data: bytes) -> list[bytes]: ...
+
+    def reset(self) -> None: ...
+
+
+@dataclass
+class LinkOptions:
+    """Link speed and faults. Rates are probabilities per reply byte (0..1)."""
+
+    baud: Optional[int] = None      # None: instant; else replies take wire time
+    drop: float = 0.0               # drop a reply byte
+    corrupt: float = 0.0            # flip bits of a reply byte
+    delay: float = 0.0              # seconds before each reply
+    silent: bool = False            # read requests, never answer
+    disconnect_after: Optional[int] = None  # close the link after N replies
+    frame_timeout: float = 0.5      # guide 2.2.7: 0x2005/0x2006 default 500 ms
+    seed: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "corrupt"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be a probability between 0 and 1, got {value}")
+        if self.baud is not None and self.baud <= 0:
+            raise ValueError("baud must be positive")
+        if self.delay < 0:
+            raise ValueError("delay must not be negative")
+
+
+class FaultInjector:
+    """Applies drop/corrupt faults to reply bytes; counts what it did."""
+
+    def __init__(self, options: LinkOptions) -> None:
+        self.options = options
+        self.rng = random.Random(options.seed)
+        self.dropped = 0
+        self.corrupted = 0
+
+    def apply(self, reply: bytes) -> bytes:
+        drop, corrupt = self.options.drop, self.options.corrupt
+        if not drop and not corrupt:
+            return reply
+        out = bytearray()
+        rnd = self.rng.random
+        for b in reply:
+            if drop and rnd() < drop:
+                self.dropped += 1
+                continue
+            if corrupt and rnd() < corrupt:
+                b ^= self.rng.randrange(1, 256)
+                self.corrupted += 1
+            out.append(b)
+        return bytes(out)
+
+
+class LinkServer:
+    """Runs the request/answer loop over one byte stream (fd or socket)."""
+
+    def __init__(self, device: Device, options: Optional[LinkOptions] = None) -> None:
+        self.device = device
+        self.options = options or LinkOptions()
+        self.faults = FaultInjector(self.options)
+        self.replies = 0
+        self._stop = threading.Event()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def _send(self, write: Callable[[bytes], None], reply: bytes) -> None:
+        opts = self.options
+        if opts.delay:
+            time.sleep(opts.delay)
+        reply = self.faults.apply(reply)
+        if opts.baud:
+            # Pace the bytes like a UART would, in small bursts.
+            per_byte = BITS_PER_BYTE / opts.baud
+            start = time.perf_counter()
+            for i in range(0, len(reply), 16):
+                write(reply[i:i + 16])
+                due = start + (i + 16) * per_byte
+                pause = due - time.perf_counter()
+                if pause > 0:
+                    time.sleep(pause)
+        elif reply:
+            write(reply)
+
+    def serve_stream(self, read: Callable[[float], Optional[bytes]],
+                     write: Callable[[bytes], None]) -> None:
+        """Serve until stopped, the peer closes (read returns None) or a disconnect fault."""
+        opts = self.options
+        last_rx = time.monotonic()
+        self.device.reset()
+        while not self._stop.is_set():
+            data = read(0.05)
+            now = time.monotonic()
+            if data is None:
+                return
+            if not data:
+                if now - last_rx > opts.frame_timeout:
+                    self.device.reset()  # a partial frame older than the frame timeout
+                    last_rx = now
+                continue
+            if opts.baud:
+                # The request itself took wire time to arrive.
+                time.sleep(len(data) * BITS_PER_BYTE / opts.baud)
+            last_rx = now
+            for reply in self.device.receive(data):
+                if opts.silent:
+                    continue
+                self._send(write, reply)
+                self.replies += 1
+                if opts.disconnect_after is not None and self.replies >= opts.disconnect_after:
+                    return
+
+
+def _raw_tty(fd: int) -> None:
+    import termios
+    import tty
+
+    tty.setraw(fd, termios.TCSANOW)
+
+
+class PtyLink:
+    """A pseudo-terminal: the host opens :attr:`path` like a serial port."""
+
+    def __init__(self, device: Device, options: Optional[LinkOptions] = None) -> None:
+        self.server = LinkServer(device, options)
+        self.master, self.slave = os.openpty()
+        _raw_tty(self.slave)
+        _raw_tty(self.master)
+        self.path = os.ttyname(self.slave)
+        self._thread = threading.Thread(target=self._run, name="epos-sim-pty", daemon=True)
+
+    def start(self) -> "PtyLink":
+        self._thread.start()
+        return self
+
+    def _read(self, timeout: float) -> Optional[bytes]:
+        ready, _, _ = select.select([self.master], [], [], timeout)
+        if not ready:
+            return b""
+        try:
+            return os.read(self.master, 4096)
+        except OSError:  # EIO: no process has the slave open right now
+            time.sleep(timeout)
+            return b""
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            n = os.write(self.master, view)
+            view = view[n:]
+
+    def _run(self) -> None:
+        while not self.server.stopped:
+            self.server.serve_stream(self._read, self._write)
+            if self.server.options.disconnect_after is not None:
+                return  # a pty cannot be "unplugged" and replugged: stop serving
+
+    def close(self) -> None:
+        self.server.stop()
+        if self._thread.is_alive():
+            self._thread.join(2)
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class TcpLink:
+    """A TCP listener, one host at a time: reach it with ``socket://HOST:PORT``."""
+
+    def __init__(self, device: Device, options: Optional[LinkOptions] = None,
+                 host: str = "127.0.0.1", port: int = 0) -> None:
+        self.server = LinkServer(device, options)
+        self.sock = socket.create_server((host, port))
+        self.sock.settimeout(0.1)
+        self.host, self.port = self.sock.getsockname()[:2]
+        self.url = f"socket://{self.host}:{self.port}"
+        self._thread = threading.Thread(target=self._run, name="epos-sim-tcp", daemon=True)
+
+    def start(self) -> "TcpLink":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self.server.stopped:
+            try:
+                conn, _ = self.sock.accept()
+            except (socket.timeout, BlockingIOError):
+                continue
+            except OSError:
+                return
+            with conn:
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                conn.settimeout(None)
+
+                def read(timeout: float, conn: socket.socket = conn) -> Optional[bytes]:
+                    ready, _, _ = select.select([conn], [], [], timeout)
+                    if not ready:
+                        return b""
+                    try:
+                        data = conn.recv(4096)
+                    except OSError:
+                        return None
+                    return data or None
+
+                try:
+                    self.server.serve_stream(read, conn.sendall)
+                except OSError as exc:
+                    log.info("host connection ended: %s", exc)
+                self.server.replies = 0
+
+    def close(self) -> None:
+        self.server.stop()
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+        if self._thread.is_alive():
+            self._thread.join(2)
