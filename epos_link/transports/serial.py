@@ -1,0 +1,188 @@
+"""Serial links through pyserial's ``serial_for_url``.
+
+Device paths (``/dev/ttyUSB0``, ``/dev/pts/3``, ``COM3``) and pyserial's own
+URLs (``socket://host:port``, ``rfc2217://host:port``, ``loop://``,
+``spy://...``) all open here. RS232 defaults to 115200 baud 8N1 (guide 2.2.6:
+"1 start bit, 8 data bits, no parity, 1 stop bit"); pass ``baudrate=`` to
+change it. URL handlers that take options in the query (``rfc2217://``,
+``spy://``) keep pyserial's syntax.
+
+Reading: the transport contract is "return as soon as any byte is there, or
+b'' after the timeout". pyserial's ``read(n)`` waits for all ``n`` bytes, so
+three readers exist, picked by the port's exact class:
+
+* a POSIX port (``serial.Serial``): ``select`` on its file descriptor, then one
+  ``os.read`` of whatever is there. No termios call on the hot path.
+* ``socket://``: ``select`` and one ``recv``; pyserial's ``in_waiting`` on a
+  socket says only 0 or 1, which would cost a system call per byte.
+* anything else (``spy://`` logs inside ``read``, ``loop://``, ``rfc2217://``,
+  Windows): the port's own ``read(1)`` with a timeout, then ``in_waiting``
+  more bytes. Timeouts are set from a short ladder of values, because setting
+  ``Serial.timeout`` reconfigures the port.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import select
+import time
+from typing import Any, Callable, Optional
+
+import serial
+
+from ..errors import TransportError
+from .base import Transport
+
+DEFAULT_BAUDRATE = 115200  # guide 2.3.2 / factory setting of the EPOS4 RS232 interface
+WRITE_TIMEOUT = 2.0  # a stuck link must not block a write forever
+_RETRY_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR)
+# Read timeouts used by the generic reader, largest first: the port keeps one
+# of a few values, and the loop in _read_generic makes up the rest.
+_LADDER = (0.1, 0.02, 0.005, 0.001, 0.0)
+
+
+def _open_hint(url: str, exc: BaseException) -> str:
+    text = str(exc)
+    if isinstance(exc, OSError) and exc.errno == errno.EACCES or "Permission denied" in text:
+        return (f"cannot open {url}: permission denied. On Linux add your user to the group "
+                f"that owns the port (usually 'dialout': sudo usermod -aG dialout $USER, "
+                f"then log in again)")
+    return f"cannot open {url}: {text}"
+
+
+class SerialTransport(Transport):
+    """A pyserial port behind the :class:`Transport` interface."""
+
+    def __init__(self, url: str, *, baudrate: int = DEFAULT_BAUDRATE,
+                 port_factory: Callable[..., Any] = serial.serial_for_url, **port_options: Any) -> None:
+        self.url = url
+        self.baudrate = baudrate
+        self._factory = port_factory
+        self._options = port_options
+        self._port: Any = None
+        self._read: Callable[[int, float], bytes] = self._read_generic
+        self._fd = -1
+        self._sock: Any = None
+        self.open()
+
+    # --- life cycle -------------------------------------------------------
+
+    def open(self) -> None:
+        if self._port is not None:
+            return
+        try:
+            port = self._factory(self.url, baudrate=self.baudrate, bytesize=8, parity="N",
+                                 stopbits=1, timeout=0, write_timeout=WRITE_TIMEOUT,
+                                 **self._options)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TransportError(_open_hint(self.url, exc)) from exc
+        self._port = port
+        cls = type(port)
+        if os.name == "posix" and cls is serial.Serial and getattr(port, "fd", None) is not None:
+            self._fd = port.fd
+            self._read = self._read_fd
+        elif cls.__module__.endswith("protocol_socket") and getattr(port, "_socket", None):
+            self._sock = port._socket
+            self._read = self._read_socket
+        else:
+            self._read = self._read_generic
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        self._fd, self._sock = -1, None
+        if port is not None:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                pass  # closing a vanished device: nothing left to release
+
+    def reopen(self) -> None:
+        self.close()
+        self.open()
+
+    # --- I/O --------------------------------------------------------------
+
+    def _closed(self) -> TransportError:
+        return TransportError(f"{self.url} is closed")
+
+    def write(self, data: bytes) -> None:
+        port = self._port
+        if port is None:
+            raise self._closed()
+        try:
+            port.write(data)
+        except (serial.SerialException, OSError) as exc:
+            raise TransportError(f"write to {self.url} failed: {exc}") from exc
+
+    def read(self, max_bytes: int, timeout: float) -> bytes:
+        if self._port is None:
+            raise self._closed()
+        return self._read(max_bytes, timeout if timeout > 0 else 0.0)
+
+    def reset_input(self) -> None:
+        port = self._port
+        if port is None:
+            raise self._closed()
+        try:
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            raise TransportError(f"flushing {self.url} failed: {exc}") from exc
+
+    def _read_fd(self, max_bytes: int, timeout: float) -> bytes:
+        fd = self._fd
+        try:
+            if not select.select((fd,), (), (), timeout)[0]:
+                return b""
+            data = os.read(fd, max_bytes)
+        except OSError as exc:
+            if exc.errno in _RETRY_ERRNOS:
+                return b""
+            raise TransportError(f"read from {self.url} failed: {exc}") from exc
+        if not data:
+            # select said readable and there is nothing: the device is gone
+            # (pyserial reports the same case the same way).
+            raise TransportError(f"{self.url}: readable but no data (device disconnected?)")
+        return data
+
+    def _read_socket(self, max_bytes: int, timeout: float) -> bytes:
+        sock = self._sock
+        try:
+            if not select.select((sock,), (), (), timeout)[0]:
+                return b""
+            data: bytes = sock.recv(max_bytes)
+        except OSError as exc:
+            if exc.errno in _RETRY_ERRNOS:
+                return b""
+            raise TransportError(f"read from {self.url} failed: {exc}") from exc
+        if not data:
+            raise TransportError(f"{self.url}: connection closed by the peer")
+        return data
+
+    def _read_generic(self, max_bytes: int, timeout: float) -> bytes:
+        port = self._port
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                waiting = port.in_waiting
+                if waiting:
+                    return bytes(port.read(min(waiting, max_bytes)))
+                left = deadline - time.monotonic()
+                step = next(s for s in _LADDER if s <= left) if left > 0 else 0.0
+                if port.timeout != step:
+                    port.timeout = step
+                first = port.read(1)
+                if first:
+                    more = port.in_waiting if max_bytes > 1 else 0
+                    return bytes(first) + bytes(port.read(min(more, max_bytes - 1))) if more else bytes(first)
+                if step == 0.0:
+                    return b""
+        except (serial.SerialException, OSError) as exc:
+            raise TransportError(f"read from {self.url} failed: {exc}") from exc
+
+
+def open_serial(url: str, *, baudrate: Optional[int] = None, **options: Any) -> SerialTransport:
+    """Open ``url`` with ``serial.serial_for_url`` (115200 8N1 unless ``baudrate`` is given)."""
+    return SerialTransport(url, baudrate=baudrate or DEFAULT_BAUDRATE, **options)
+
+
+__all__ = ["DEFAULT_BAUDRATE", "SerialTransport", "open_serial"]
