@@ -1,0 +1,139 @@
+"""The pyserial transport over a real TCP socket, a pseudo-terminal, and pyserial's own URLs."""
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from epos_link.client import EposClient
+from epos_link.errors import EposTimeoutError, TransportError
+from epos_link.transports import open_transport
+from epos_link.transports.serial import SerialTransport, open_serial
+from tests.responder import PtyResponder, SocketResponder, read_pair
+
+REQUEST, ANSWER = read_pair(1, 0x6064, 0, (1000).to_bytes(4, "little"))
+pytestmark = pytest.mark.skipif(os.name != "posix", reason="pseudo-terminals are POSIX")
+
+
+def read_all(link: SerialTransport, count: int, timeout: float = 1.0) -> bytes:
+    got = b""
+    deadline = time.monotonic() + timeout
+    while len(got) < count and time.monotonic() < deadline:
+        got += link.read(count - len(got), deadline - time.monotonic())
+    return got
+
+
+def test_socket_url_round_trip_and_reader() -> None:
+    with SocketResponder({REQUEST: ANSWER}) as dev:
+        link = open_transport(dev.url)
+        assert isinstance(link, SerialTransport) and link._read == link._read_socket
+        link.write(REQUEST)
+        assert read_all(link, len(ANSWER)) == ANSWER
+        link.close()
+        link.close()  # idempotent
+
+
+def test_pty_opened_like_a_serial_port() -> None:
+    with PtyResponder({REQUEST: ANSWER}) as dev:
+        link = open_serial(dev.path, baudrate=115200)
+        assert link._read == link._read_fd and link._port.baudrate == 115200
+        link.write(REQUEST)
+        assert read_all(link, len(ANSWER)) == ANSWER
+        link.close()
+
+
+@pytest.mark.parametrize("kind", ["socket", "pty", "spy"])
+def test_read_timeout_returns_nothing_in_time(kind: str) -> None:
+    responder = SocketResponder({}) if kind == "socket" else PtyResponder({})
+    with responder as dev:
+        url = {"socket": getattr(dev, "url", ""), "pty": getattr(dev, "path", ""),
+               "spy": f"spy://{getattr(dev, 'path', '')}?file=/dev/null"}[kind]
+        link = open_transport(url)
+        start = time.monotonic()
+        assert link.read(100, 0.05) == b""
+        took = time.monotonic() - start
+        assert 0.04 <= took < 0.5
+        assert link.read(100, 0) == b""
+        link.close()
+
+
+def test_generic_reader_over_spy_url_returns_what_is_there() -> None:
+    with PtyResponder({REQUEST: ANSWER}) as dev:
+        link = open_transport(f"spy://{dev.path}?file=/dev/null")
+        assert isinstance(link, SerialTransport) and link._read == link._read_generic
+        link.write(REQUEST)
+        assert read_all(link, len(ANSWER)) == ANSWER
+        link.close()
+
+
+def test_loop_url() -> None:
+    link = open_transport("loop://")
+    link.write(b"\x90\x02abc")
+    assert read_all(link, 5) == b"\x90\x02abc"
+    link.write(b"stale")
+    time.sleep(0.01)
+    link.reset_input()
+    assert link.read(10, 0.01) == b""
+    link.close()
+
+
+def test_reset_input_discards_pending_bytes_on_a_pty() -> None:
+    with PtyResponder({}) as dev:
+        link = open_serial(dev.path)
+        os.write(dev.master, b"stale bytes")
+        time.sleep(0.02)
+        link.reset_input()
+        assert link.read(100, 0.02) == b""
+        link.close()
+
+
+def test_missing_device_is_a_transport_error() -> None:
+    with pytest.raises(TransportError, match="cannot open /dev/does-not-exist"):
+        open_transport("/dev/does-not-exist")
+    with pytest.raises(TransportError, match="cannot open"):
+        open_transport("nosuchscheme://x")
+
+
+def test_refused_socket_is_a_transport_error() -> None:
+    with SocketResponder({}) as dev:
+        port = dev.port
+    time.sleep(0.1)  # the listener is closed now
+    with pytest.raises(TransportError):
+        open_transport(f"socket://127.0.0.1:{port}")
+
+
+def test_closed_transport_refuses_io() -> None:
+    link = open_transport("loop://")
+    link.close()
+    for call in (lambda: link.write(b"x"), lambda: link.read(1, 0), link.reset_input):
+        with pytest.raises(TransportError, match="closed"):
+            call()
+
+
+def test_pty_hang_up_is_a_transport_error() -> None:
+    dev = PtyResponder({})
+    link = open_serial(dev.path)
+    dev.hang_up()
+    with pytest.raises(TransportError):
+        link.read(10, 0.2)
+    link.close()
+
+
+def test_broken_socket_is_reopened_by_the_client() -> None:
+    with SocketResponder({REQUEST: ANSWER}) as dev:
+        client = EposClient(open_transport(dev.url), timeout=0.2)
+        assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
+        # The connection breaks: the next call fails, reopens (a new connection) and retries.
+        client.transport._sock.shutdown(2)  # type: ignore[attr-defined]
+        assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
+        assert dev.connections == 2
+        client.close()
+
+
+def test_client_over_pty_times_out_on_a_silent_device() -> None:
+    with PtyResponder({}) as dev:
+        client = EposClient(open_serial(dev.path), timeout=0.05, retries=0)
+        with pytest.raises(EposTimeoutError):
+            client.read_object(1, 0x6064, 0)
+        client.close()
