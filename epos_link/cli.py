@@ -16,6 +16,12 @@ from typing import Optional, Sequence
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "decode": ("epos_link.tools.decode", "decode frames from hex or a capture file"),
+    "read": ("epos_link.tools.access", "read an object of a node (ReadObject or segmented read)"),
+    "write": ("epos_link.tools.access", "write an object of a node (WriteObject or segmented write)"),
+    "scan": ("epos_link.tools.access", "find the CANopen nodes that answer (0x1000, 0x1008, 0x1018)"),
+    "nmt": ("epos_link.tools.access", "send an NMT command (SendNMTService)"),
+    "ports": ("epos_link.tools.ports", "list serial ports and EPOS4 USB devices"),
+    "sim": ("epos_link.tools.sim", "serve a simulated EPOS4 on a pty or TCP"),
 }
 
 

@@ -1,0 +1,156 @@
+"""A simulated EPOS4: its own CiA 402 drive, and drives behind its CAN gateway.
+
+:class:`Epos4Simulator` answers MAXON SERIAL V2 bytes (:meth:`receive`) the way
+the guide describes: requests for node 0 or its own node id are executed on its
+own object dictionary; any other node id is forwarded as an SDO over a
+python-can ``virtual`` bus (chapter 5), where each simulated drive is a canopen
+``LocalNode`` over the same drive model. Other code in the process can join that
+bus with ``canopen.Network().connect(interface="virtual", channel=sim.channel)``.
+
+Time: by default the drives run in real time (``time.monotonic``); pass a
+:class:`~epos_link.simulator.drive.VirtualClock` to step time in tests.
+"""
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from typing import Callable, Iterable, Optional
+
+import canopen
+from canopen.sdo import SdoAbortedError
+
+from ..codes import NmtCommand
+from .device import Abort, DeviceProtocol
+from .drive import Drive
+from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
+from .od import ObjectStore, load_object_dictionary, make_local_node
+
+_channels = itertools.count(1)
+NODE_ID_OBJECT = 0x2000  # maxon: Node-ID (the DIP switch value on a real EPOS4)
+HOME_POSITION = 0x30B0
+
+
+class SimulatedDrive:
+    """One drive: object store, CiA 402 model and (behind the gateway) its LocalNode."""
+
+    def __init__(self, node_id: int, clock: Callable[[], float]) -> None:
+        self.node_id = node_id
+        self.store = ObjectStore(load_object_dictionary(node_id))
+        self.store.set(NODE_ID_OBJECT, 0, node_id)
+        self.drive = Drive(self.store, clock=clock)
+        self.local_node: Optional[canopen.LocalNode] = None
+
+    def nmt(self, command: int) -> None:
+        if command == NmtCommand.RESET_NODE:
+            self.drive.power_cycle(self.drive.clock() if self.drive.clock else None)
+            self.store.set(NODE_ID_OBJECT, 0, self.node_id)
+
+
+class Epos4Simulator:
+    """The device behind the serial link; thread-safe, one command at a time."""
+
+    def __init__(self, node_id: int = 1, drives: Iterable[int] = (), *,
+                 clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
+                 gateway_timeout: float = 0.3, segment_size: int = 255,
+                 initiate_carries_data: bool = True) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError("node id must be 1..127")
+        self.node_id = node_id
+        self.clock = clock or time.monotonic
+        self._lock = threading.Lock()
+        self.own = SimulatedDrive(node_id, self.clock)
+        self.drives: dict[int, SimulatedDrive] = {node_id: self.own}
+        remote = sorted(set(drives) - {node_id})
+        for nid in remote:
+            if not 1 <= nid <= 127:
+                raise ValueError(f"drive node id {nid} must be 1..127")
+        self.channel = channel or f"epos-sim-{id(self):x}-{next(_channels)}"
+        self._drive_net: Optional[canopen.Network] = None
+        self.gateway: Optional[CanGateway] = None
+        if remote:
+            self._drive_net = connect_virtual(self.channel)
+            for nid in remote:
+                sim = SimulatedDrive(nid, self.clock)
+                sim.local_node = make_local_node(sim.store, nid)
+                self._drive_net.add_node(sim.local_node)
+                self.drives[nid] = sim
+            self._drive_net.subscribe(0, self._on_nmt)
+            self.gateway = CanGateway(connect_virtual(self.channel), timeout=gateway_timeout)
+        self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,
+                                     initiate_carries_data=initiate_carries_data)
+
+    # -- the serial side ---------------------------------------------------------------
+
+    def receive(self, data: bytes) -> list[bytes]:
+        with self._lock:
+            return self.device.receive(data)
+
+    def reset(self) -> None:
+        with self._lock:
+            self.device.reset()
+
+    # -- ObjectAccess for the device protocol ---------------------------------------------
+
+    def _is_local(self, node: int) -> bool:
+        return node in (0, self.node_id)
+
+    def read(self, node: int, index: int, subindex: int) -> bytes:
+        if self._is_local(node):
+            try:
+                return self.own.store.read(index, subindex)
+            except SdoAbortedError as exc:
+                raise Abort(exc.code) from None
+        if self.gateway is None:
+            raise Abort(SDO_TIMEOUT_ABORT)
+        return self.gateway.read(node, index, subindex)
+
+    def write(self, node: int, index: int, subindex: int, data: bytes, *,
+              expedited: bool = True) -> None:
+        if self._is_local(node):
+            try:
+                self.own.store.write(index, subindex, data)
+            except SdoAbortedError as exc:
+                raise Abort(exc.code) from None
+            return
+        if self.gateway is None:
+            raise Abort(SDO_TIMEOUT_ABORT)
+        self.gateway.write(node, index, subindex, data, expedited=expedited)
+
+    def nmt(self, node: int, command: int) -> None:
+        # SendNMTService goes to the CAN bus (node 0 = all nodes) and to this
+        # device itself when it is addressed.
+        if node in (0, self.node_id):
+            self.own.nmt(command)
+        if self.gateway is not None and node != self.node_id:
+            self.gateway.nmt(node, command)
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """NMT frames on the CAN bus reach the simulated drives (canopen's own
+        NmtSlave only tracks the state; a reset node also resets the drive)."""
+        if len(data) < 2:
+            return
+        command, target = data[0], data[1]
+        for nid, sim in self.drives.items():
+            if sim is not self.own and target in (0, nid):
+                sim.nmt(command)
+
+    # -- conveniences ----------------------------------------------------------------------
+
+    def drive(self, node_id: int) -> Drive:
+        return self.drives[node_id].drive
+
+    def close(self) -> None:
+        if self.gateway is not None:
+            self.gateway.close()
+            self.gateway.network.disconnect()
+            self.gateway = None
+        if self._drive_net is not None:
+            self._drive_net.disconnect()
+            self._drive_net = None
+
+    def __enter__(self) -> "Epos4Simulator":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

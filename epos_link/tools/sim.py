@@ -1,0 +1,122 @@
+"""``epos-link sim``: serve a simulated EPOS4 (with drives behind its gateway).
+
+Prints one line saying where it listens, then serves until interrupted::
+
+    $ epos-link sim --tcp 127.0.0.1:0 --drives 2,3
+    listening on socket://127.0.0.1:40123
+    $ epos-link sim --pty
+    listening on /dev/pts/7
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from typing import Any, Optional
+
+from ..errors import EposError
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host or "127.0.0.1", int(port)
+
+
+def _probability(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"a probability is between 0 and 1, got {text}")
+    return value
+
+
+def _node_list(text: str) -> list[int]:
+    try:
+        nodes = [int(n, 0) for n in text.split(",") if n.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected node ids like 2,3: {text!r}") from None
+    if any(not 1 <= n <= 127 for n in nodes):
+        raise argparse.ArgumentTypeError("node ids are 1..127")
+    return nodes
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
+    where.add_argument("--tcp", type=_host_port, metavar="HOST:PORT",
+                       help="serve on TCP (reach it with socket://HOST:PORT); port 0 picks one")
+    parser.add_argument("--node-id", type=int, default=1, choices=range(1, 128), metavar="1..127",
+                        help="the simulated EPOS4's own node id (default 1)")
+    parser.add_argument("--drives", type=_node_list, default=[], metavar="2,3",
+                        help="node ids of simulated drives behind the CAN gateway")
+    parser.add_argument("--baud", type=int, default=None, help="pace replies like a UART at N baud")
+    parser.add_argument("--drop", type=_probability, default=0.0, metavar="P",
+                        help="drop each reply byte with probability P")
+    parser.add_argument("--corrupt", type=_probability, default=0.0, metavar="P",
+                        help="corrupt each reply byte with probability P")
+    parser.add_argument("--delay", type=float, default=0.0, metavar="MS",
+                        help="delay each reply by MS milliseconds")
+    parser.add_argument("--silent", action="store_true", help="read requests, never answer")
+    parser.add_argument("--seed", type=int, default=None, help="seed of the fault generator")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log protocol events")
+
+
+def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
+    from .. import simulator  # noqa: F401  (import cost only for this command)
+    from ..simulator.core import Epos4Simulator
+    from ..simulator.link import LinkOptions, PtyLink, TcpLink
+
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s %(message)s")
+    if not args.verbose:
+        # An absent node's SDO timeout is an expected answer (0x05040000), not an error to log.
+        logging.getLogger("canopen").setLevel(logging.CRITICAL)
+    if args.baud is not None and args.baud <= 0:
+        print("epos-link sim: --baud must be positive", file=sys.stderr)
+        return 2
+    if args.delay < 0:
+        print("epos-link sim: --delay must not be negative", file=sys.stderr)
+        return 2
+    options = LinkOptions(baud=args.baud, drop=args.drop, corrupt=args.corrupt,
+                          delay=args.delay / 1000.0, silent=args.silent, seed=args.seed)
+    sim = Epos4Simulator(args.node_id, args.drives)
+    link: Any
+    try:
+        if args.tcp:
+            link = TcpLink(sim, options, host=args.tcp[0], port=args.tcp[1])
+            where = link.url
+        else:
+            link = PtyLink(sim, options)
+            where = link.path
+    except (OSError, EposError) as exc:
+        sim.close()
+        print(f"epos-link sim: cannot listen: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+
+    def _stop(*_: object) -> None:
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _stop)
+        signal.signal(signal.SIGINT, _stop)
+    link.start()
+    print(f"listening on {where}", flush=True)
+    if args.drives:
+        print(f"drives behind the gateway: {', '.join(map(str, args.drives))} "
+              f"(CAN channel {sim.channel})", flush=True)
+    if ready is not None:
+        ready.set()
+    try:
+        while not stop.wait(0.2):
+            pass
+    finally:
+        link.close()
+        sim.close()
+    return 0
