@@ -104,7 +104,8 @@ class _Transfer:
     def done(self) -> bool:
         return self.state is TransferState.DONE
 
-    def _where(self) -> str:
+    def where(self) -> str:
+        """The address of the transfer, for messages."""
         return f"node {self.node} 0x{self.index:04X}/0x{self.subindex:02X}"
 
     def _start(self) -> None:
@@ -121,7 +122,7 @@ class _Transfer:
         code = answer.error_code  # type: ignore[attr-defined]
         if code:
             self.state = TransferState.FAILED
-            raise DeviceError(code, self._where())
+            raise DeviceError(code, self.where())
 
     def _fail(self, exc: RemoteProtocolError) -> RemoteProtocolError:
         self.state = TransferState.FAILED
@@ -168,13 +169,13 @@ class SegmentedRead(_Transfer):
         if total > self.max_length:
             self.state = TransferState.FAILED
             raise LocalProtocolError(
-                f"{self._where()}: object of {total} bytes exceeds max_length {self.max_length}")
+                f"{self.where()}: object of {total} bytes exceeds max_length {self.max_length}")
         self.object_length = total
         # The guide's answer may already carry the first chunk (Length > 0).
         self._data += answer.data
         if len(self._data) > total:
             raise self._fail(SegmentLengthError(
-                f"{self._where()}: first answer carries {len(self._data)} bytes of a "
+                f"{self.where()}: first answer carries {len(self._data)} bytes of a "
                 f"{total}-byte object", answer.data))
         if len(self._data) == total:
             self.state = TransferState.DONE
@@ -185,7 +186,7 @@ class SegmentedRead(_Transfer):
     def _segment(self, answer: SegmentReadAnswer) -> Optional[SegmentRead]:
         if answer.toggle != self._toggle:
             raise self._fail(ToggleBitError(
-                f"{self._where()}: segment {self.segments} answered with toggle "
+                f"{self.where()}: segment {self.segments} answered with toggle "
                 f"{int(answer.toggle)}, expected {int(self._toggle)}"))
         total = self.object_length
         assert total is not None
@@ -194,18 +195,18 @@ class SegmentedRead(_Transfer):
         got = len(self._data)
         if got > total:
             raise self._fail(SegmentLengthError(
-                f"{self._where()}: {got} bytes received of a {total}-byte object", answer.data))
+                f"{self.where()}: {got} bytes received of a {total}-byte object", answer.data))
         if answer.last:
             if got != total:
                 raise self._fail(SegmentLengthError(
-                    f"{self._where()}: last segment after {got} of {total} bytes", answer.data))
+                    f"{self.where()}: last segment after {got} of {total} bytes", answer.data))
             self.state = TransferState.DONE
             return None
         if not answer.data:
             # Each segment must make progress, or a broken device could keep us
             # reading forever.
             raise self._fail(SegmentLengthError(
-                f"{self._where()}: empty segment without the last-segment bit"))
+                f"{self.where()}: empty segment without the last-segment bit"))
         self._toggle = not self._toggle
         return SegmentRead(self._toggle)
 
@@ -247,11 +248,11 @@ class SegmentedWrite(_Transfer):
         sent = self._sent
         if answer.toggle != sent.toggle:
             raise self._fail(ToggleBitError(
-                f"{self._where()}: segment {self.segments} acknowledged with toggle "
+                f"{self.where()}: segment {self.segments} acknowledged with toggle "
                 f"{int(answer.toggle)}, expected {int(sent.toggle)}"))
         if answer.length_written != len(sent.data):
             raise self._fail(SegmentLengthError(
-                f"{self._where()}: device wrote {answer.length_written} of the "
+                f"{self.where()}: device wrote {answer.length_written} of the "
                 f"{len(sent.data)} bytes of segment {self.segments}"))
         self._offset += len(sent.data)
         self.segments += 1

@@ -89,7 +89,19 @@ class SerialTransport(Transport):
 
     def close(self) -> None:
         port, self._port = self._port, None
-        self._fd, self._sock = -1, None
+        sock, self._sock = self._sock, None
+        self._fd = -1
+        if sock is not None:
+            # pyserial's socket handler sleeps 0.3 s in close() "for quick
+            # reconnects"; every CLI call would pay it. Close the socket here
+            # and mark the port closed so its close() has nothing left to do.
+            try:
+                sock.shutdown(2)  # SHUT_RDWR
+            except OSError:
+                pass
+            sock.close()
+            port._socket = None
+            port.is_open = False
         if port is not None:
             try:
                 port.close()

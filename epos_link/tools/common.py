@@ -1,0 +1,115 @@
+"""What the link commands share: the URL argument, link options, number parsing,
+and the one place that turns an exception into a message and an exit code.
+
+Exit codes (see :mod:`epos_link.cli`): 0 success; 1 the device answered with
+an error code, printed as ``0x%08X`` with its name; 2 usage errors, timeouts,
+unreachable ports and communication failures. Expected failures never print a
+traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Callable
+
+from ..client import DEFAULT_RETRIES, DEFAULT_TIMEOUT, EposClient
+from ..errors import (
+    DeviceError,
+    EposError,
+    EposTimeoutError,
+    LocalProtocolError,
+    RemoteProtocolError,
+    TransportError,
+)
+
+URL_HELP = ("link URL: a serial device (/dev/ttyUSB0, COM3), usb:// or usb://?serial=SN, "
+            "socket://HOST:PORT, rfc2217://HOST:PORT, sim://, replay://CAPTURE.txt, "
+            "or any pyserial URL")
+
+
+def parse_int(text: str) -> int:
+    """Decimal or 0x-hex (``300``, ``0x12C``, ``-5``); for argparse ``type=``."""
+    t = text.strip().replace("_", "")
+    negative = t.startswith("-")
+    digits = t[1:] if negative else t
+    try:
+        if digits[:2].lower() == "0x":
+            value = int(digits[2:], 16)
+        else:
+            value = int(digits, 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a decimal or 0x-hex number") from None
+    return -value if negative else value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError("must be above 0")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    value = parse_int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError("must be 0 or more")
+    return value
+
+
+def add_url(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("url", metavar="URL", help=URL_HELP)
+
+
+def add_link_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("link options")
+    group.add_argument("--timeout", type=positive_float, default=DEFAULT_TIMEOUT, metavar="SECONDS",
+                       help=f"deadline per request (default {DEFAULT_TIMEOUT:g}, the EPOS4 frame timeout)")
+    group.add_argument("--retries", type=non_negative_int, default=DEFAULT_RETRIES, metavar="N",
+                       help=f"retries after communication errors (default {DEFAULT_RETRIES})")
+    group.add_argument("--baud", type=parse_int, default=None, metavar="BAUD",
+                       help="serial baud rate (default 115200)")
+    group.add_argument("--gateway-id", type=parse_int, default=None, metavar="NODE",
+                       help="the connected EPOS4's own node id (allows segmented writes to it)")
+    group.add_argument("--trace", metavar="FILE",
+                       help="record the traffic to FILE (capture format; replay with replay://FILE)")
+
+
+def open_client(args: argparse.Namespace) -> EposClient:
+    return EposClient.open(args.url, trace=args.trace, baudrate=args.baud,
+                           gateway_node_id=args.gateway_id, timeout=args.timeout,
+                           retries=args.retries)
+
+
+def report(prog: str, exc: BaseException) -> int:
+    """The message and exit code of an expected failure."""
+    if isinstance(exc, DeviceError):
+        where = str(exc).rsplit(": ", 1)[0] if ": " in str(exc) else ""
+        print(f"{prog}: device error 0x{exc.code:08X} {exc.name}" + (f" ({where})" if where else ""),
+              file=sys.stderr)
+        return 1
+    if isinstance(exc, EposTimeoutError):
+        print(f"{prog}: timeout: {exc} (check the URL, cabling, node id and baud rate)", file=sys.stderr)
+    elif isinstance(exc, TransportError):
+        print(f"{prog}: link error: {exc}", file=sys.stderr)
+    elif isinstance(exc, RemoteProtocolError):
+        print(f"{prog}: communication error: {exc}", file=sys.stderr)
+    elif isinstance(exc, LocalProtocolError):
+        print(f"{prog}: {exc}", file=sys.stderr)
+    else:
+        print(f"{prog}: {type(exc).__name__}: {exc}", file=sys.stderr)
+    return 2
+
+
+def guarded(prog: str, body: Callable[[], int]) -> int:
+    """Run ``body``; expected failures become a message and an exit code."""
+    try:
+        return body()
+    except EposError as exc:  # anything else is a bug and keeps its traceback
+        return report(prog, exc)
+
+
+__all__ = ["URL_HELP", "add_link_options", "add_url", "guarded", "non_negative_int", "open_client",
+           "parse_int", "positive_float", "report"]

@@ -1,0 +1,192 @@
+"""``epos-link read/write/scan/nmt/ports`` over socket://127.0.0.1:PORT and a pseudo-terminal,
+against the scripted responder of tests/responder.py."""
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Iterator
+
+import pytest
+
+from epos_link.cli import main
+from tests.reference import reference_frame
+from tests.responder import (
+    PtyResponder,
+    SocketResponder,
+    answer,
+    read_pair,
+    read_request,
+    segmented_read_pairs,
+    write_pair,
+)
+
+NAME = b"EPOS4 Compact 50/8 CAN"
+SCRIPT: dict[bytes, Any] = dict([
+    read_pair(1, 0x6064, 0, (1000).to_bytes(4, "little")),
+    read_pair(1, 0x6077, 0, (-5).to_bytes(2, "little", signed=True) + b"\xFF\xFF"),
+    read_pair(2, 0x1234, 0, b"", code=0x06020000),
+    write_pair(1, 0x6040, 0, b"\x0F\x00"),
+    write_pair(1, 0x607A, 0, (-100).to_bytes(4, "little", signed=True)),
+    *segmented_read_pairs(1, 0x1008, 0, NAME),
+    # Segmented write of 9 bytes to node 0 in one segment (guide 2.1.2.2-2.1.2.3):
+    (reference_frame(0x69, struct.pack("<BHBI", 0, 0x2100, 1, 9)), answer(0)),
+    (reference_frame(0x6A, bytes((9, 0x02)) + b"123456789" + b"\x00"), answer(0, bytes((9, 0)))),
+    # NMT start node 2 (Table 3-14)
+    (reference_frame(0x70, struct.pack("<HH", 2, 1)), answer(0)),
+    (read_request(3, 0x6064, 0), None),  # node 3 never answers
+])
+
+
+@pytest.fixture(scope="module")
+def dev() -> Iterator[SocketResponder]:
+    with SocketResponder(SCRIPT) as responder:
+        yield responder
+
+
+def cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_read_u32_default(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = cli(capsys, "read", dev.url, "1", "0x6064", "0")
+    assert (code, out, err) == (0, "E8 03 00 00 -> u32 1000 (0x000003E8)\n", "")
+
+
+def test_read_decimal_index_and_json(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "read", dev.url, "1", "24676", "0x0", "--json")
+    assert code == 0
+    assert json.loads(out) == {"node": 1, "index": 0x6064, "subindex": 0, "data": "e8030000"}
+
+
+def test_read_signed(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "read", dev.url, "1", "0x6077", "0", "--type", "i16")
+    assert (code, out) == (0, "FB FF FF FF -> i16 -5 (0xFFFB)\n")
+
+
+def test_read_str_by_segmented_read(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "read", dev.url, "1", "0x1008", "0", "--type", "str")
+    assert code == 0 and out.endswith('-> str "EPOS4 Compact 50/8 CAN"\n')
+    code, out, _ = cli(capsys, "read", dev.url, "1", "0x1008", "0", "--type", "bytes", "--json")
+    assert json.loads(out)["data"] == NAME.hex()
+
+
+def test_write_int_types(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "write", dev.url, "1", "0x6040", "0", "0xF", "--type", "u16")
+    assert (code, out) == (0, "wrote 0F 00 to node 1 0x6040/0x00\n")
+    code, out, _ = cli(capsys, "write", dev.url, "1", "0x607A", "0", "-100", "--type", "i32")
+    assert code == 0
+
+
+def test_write_str_by_segmented_write(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = cli(capsys, "write", dev.url, "0", "0x2100", "1", "123456789", "--type", "str")
+    assert (code, err) == (0, "")
+
+
+def test_segmented_write_to_a_remote_node_is_refused(dev: SocketResponder,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    before = dev.requests
+    code, _, err = cli(capsys, "write", dev.url, "2", "0x2100", "1", "123456789", "--type", "str")
+    assert code == 2 and "does not forward" in err and "Traceback" not in err
+    assert dev.requests == before
+
+
+def test_device_error_exits_1(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = cli(capsys, "read", dev.url, "2", "0x1234", "0")
+    assert code == 1 and out == ""
+    assert "0x06020000 Object does not exist error" in err and "Traceback" not in err
+
+
+def test_timeout_exits_2(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = cli(capsys, "read", dev.url, "3", "0x6064", "0", "--timeout", "0.05")
+    assert code == 2 and "timeout" in err and "no answer within 0.05 s" in err
+
+
+def test_unreachable_port_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = cli(capsys, "read", "/dev/does-not-exist", "1", "0x6064", "0")
+    assert code == 2 and "cannot open /dev/does-not-exist" in err and "Traceback" not in err
+
+
+def test_value_out_of_range_exits_2(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = cli(capsys, "write", dev.url, "1", "0x6040", "0", "70000", "--type", "u16")
+    assert code == 2 and "out of range for u16" in err
+
+
+def test_bad_number_is_a_usage_error(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["read", dev.url, "1", "zz", "0"])
+    assert info.value.code == 2
+    assert "not a decimal or 0x-hex number" in capsys.readouterr().err
+
+
+def test_nmt(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "nmt", dev.url, "2", "start")
+    assert (code, out) == (0, "sent NMT start to node 2\n")
+
+
+def test_scan(capsys: pytest.CaptureFixture[str]) -> None:
+    script = dict([read_pair(1, 0x1000, 0, struct.pack("<I", 0x00020192)),
+                   *segmented_read_pairs(1, 0x1008, 0, b"EPOS4"),
+                   *[read_pair(1, 0x1018, s, struct.pack("<I", v)) for s, v in ((1, 0xFB), (2, 2), (3, 3), (4, 4))],
+                   read_pair(1, 0x1018, 4, b"", code=0x06090011)][:-1])
+    with SocketResponder(script) as dev:
+        code, out, _ = cli(capsys, "scan", dev.url, "--nodes", "1-3", "--node-timeout", "0.05")
+        assert code == 0
+        assert out == ('node   1  type=0x00020192  name="EPOS4"  vendor=0x000000FB product=0x00000002 '
+                       'revision=0x00000003 serial=0x00000004\n')
+        code, out, _ = cli(capsys, "scan", dev.url, "--nodes", "1", "--json")
+        assert json.loads(out)["name"] == "EPOS4"
+        code, _, err = cli(capsys, "scan", dev.url, "--nodes", "2,3", "--node-timeout", "0.02")
+        assert code == 2 and "no node answered" in err
+
+
+def test_trace_then_replay(dev: SocketResponder, capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    trace = tmp_path / "session.txt"
+    code, out, _ = cli(capsys, "read", dev.url, "1", "0x1008", "0", "--type", "str", "--trace", str(trace))
+    assert code == 0
+    text = trace.read_text()
+    assert text.startswith("# epos-link capture v1\n# source: epos-link trace of socket://")
+    assert text.count(" TX ") == 2 and text.count(" RX ") >= 2
+    code, again, _ = cli(capsys, "read", f"replay://{trace}", "1", "0x1008", "0", "--type", "str")
+    assert (code, again) == (0, out)
+    # The recording fails loudly when asked something else.
+    code, _, err = cli(capsys, "read", f"replay://{trace}", "1", "0x6064", "0")
+    assert code == 2 and "ReplayMismatchError" in err and "expects the host to send" in err
+
+
+@pytest.mark.skipif(os.name != "posix", reason="pseudo-terminals are POSIX")
+def test_read_and_write_over_a_pty(capsys: pytest.CaptureFixture[str]) -> None:
+    with PtyResponder(SCRIPT) as dev:
+        assert dev.path.startswith("/dev/")
+        code, out, _ = cli(capsys, "read", dev.path, "1", "0x6064", "0", "--baud", "115200")
+        assert (code, out) == (0, "E8 03 00 00 -> u32 1000 (0x000003E8)\n")
+        code, out, _ = cli(capsys, "write", dev.path, "1", "0x6040", "0", "15", "--type", "u16")
+        assert (code, out) == (0, "wrote 0F 00 to node 1 0x6040/0x00\n")
+        code, _, err = cli(capsys, "read", dev.path, "2", "0x1234", "0")
+        assert code == 1 and "0x06020000" in err
+
+
+def test_console_script_exit_codes_without_traceback(dev: SocketResponder) -> None:
+    run = lambda *a: subprocess.run([sys.executable, "-m", "epos_link.cli", *a],  # noqa: E731
+                                    capture_output=True, text=True, timeout=60)
+    ok = run("read", dev.url, "1", "0x6064", "0")
+    assert (ok.returncode, ok.stdout) == (0, "E8 03 00 00 -> u32 1000 (0x000003E8)\n")
+    err = run("read", dev.url, "2", "0x1234", "0")
+    assert err.returncode == 1 and "Traceback" not in err.stderr
+    gone = run("read", "socket://127.0.0.1:1", "1", "0x6064", "0")
+    assert gone.returncode == 2 and "Traceback" not in gone.stderr
+
+
+def test_ports_lists_without_failing(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "ports", "--json")
+    assert code == 0
+    for line in out.splitlines():
+        assert {"url", "kind", "id", "epos4"} <= set(json.loads(line))
+    with pytest.raises(SystemExit):
+        main(["ports", "--help"])
+    assert "99-epos4.rules" in capsys.readouterr().out
