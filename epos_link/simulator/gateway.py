@@ -97,6 +97,9 @@ class CanGateway:
 def connect_virtual(channel: str, **kwargs: Any) -> canopen.Network:
     """A canopen Network on a python-can virtual channel."""
     network = canopen.Network()
+    # The notifier thread polls the bus with this timeout; stopping waits for
+    # one cycle, so a short cycle makes closing the simulator quick.
+    network.NOTIFIER_CYCLE = 0.05
     network.connect(interface="virtual", channel=channel, receive_own_messages=False, **kwargs)
     return network
 
