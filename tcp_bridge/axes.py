@@ -1,0 +1,495 @@
+"""The axis table of the gateway (spec section 3) and its parameter array.
+
+Spec 3: "the axis settings and the axis parameters are stored in an array. For
+each axis there is an array and the system supports up to 60 axes." An axis is
+``AxAddr`` (3.1), a device code (3.5), the internal flag (3.2), a bus offset
+(3.3), a node id (3.4) and the position user-unit factor (3.6). The parameters
+are the internal parameters of the command table (spec 4), kept here by TCP
+command number (2, 5, 6, 19..63, 80) in their stored form: an integer, and for
+the ``*`` ones ``round(user value * factor)`` (spec 4 footnote).
+
+The table is read from a TOML file; ``tcp_bridge/example_axes.toml`` documents
+every key. Parameters changed with S commands are kept in a JSON state file,
+written atomically (temporary file, fsync, rename) after every change and
+overlaid on the TOML values at start, as the controller keeps them in its
+arrays across restarts.
+
+Device codes: spec 3.5 defines 0..4. This bridge adds
+``C_DC_MAXON_EPOS4 = 5`` for the maxon EPOS4 (a plain CiA 402 drive: position
+read from 6064h, detailed error from 603Fh, see :mod:`tcp_bridge.engine`).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import tempfile
+import threading
+from dataclasses import dataclass, field
+from decimal import Decimal
+from enum import IntEnum
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Dict, Final, Mapping, Optional, Tuple, Union
+
+from .commands import COMMANDS, CommandKind, CommandSpec
+from .errors import BridgeError, InvalidCommand
+from .protocol import MAX_AXIS
+from .units import Number, Scaling, parse_value, stored_parameter
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib
+
+log = logging.getLogger(__name__)
+
+
+class ConfigError(BridgeError, ValueError):
+    """The axis table or the state file is not valid; raised at start-up only."""
+
+
+class DeviceCode(IntEnum):
+    """Spec 3.5 device codes; 5 is this bridge's addition for the maxon EPOS4."""
+
+    C_DC_NOT_DEFINED = 0
+    C_DC_NANOTEC = 1
+    C_DC_TECHNOSOFT_CAN = 2
+    C_DC_TECHNOSOFT_EC = 3
+    C_DC_COBLEY_CAN = 4  # sic, the spec's spelling of Copley
+    C_DC_MAXON_EPOS4 = 5
+
+
+# Short names accepted in the TOML file besides the numbers.
+DEVICE_NAMES: Final = {
+    "not_defined": DeviceCode.C_DC_NOT_DEFINED, "nanotec": DeviceCode.C_DC_NANOTEC,
+    "technosoft_can": DeviceCode.C_DC_TECHNOSOFT_CAN,
+    "technosoft_ec": DeviceCode.C_DC_TECHNOSOFT_EC, "copley_can": DeviceCode.C_DC_COBLEY_CAN,
+    "maxon_epos4": DeviceCode.C_DC_MAXON_EPOS4,
+}
+
+
+class BusOffset(IntEnum):
+    """Spec 3.3: which bus a device is on."""
+
+    CAN1 = 0
+    CAN2 = 100_000
+    ETHERCAT = 1_000_000
+
+
+BUS_NAMES: Final = {BusOffset.CAN1: "can1", BusOffset.CAN2: "can2", BusOffset.ETHERCAT: "ethercat"}
+
+# TCP command number -> TOML name of the parameters kept in the array.
+PARAMETER_NAMES: Final = MappingProxyType({
+    2: "target_position", 5: "velocity", 6: "acceleration", 19: "device_code",
+    20: "scale_n", 21: "scale_z", 22: "axis_inversion", 23: "limit_positive",
+    24: "limit_negative", 25: "offset", 26: "max_velocity", 27: "max_acceleration",
+    28: "quickstop_accel", 29: "slave_axis", 30: "slave_direction", 31: "possible_modes",
+    32: "dynamic_limits", 40: "homing_mode", 41: "homing_velocity_switch",
+    42: "homing_velocity_index", 43: "homing_acceleration", 53: "output_function",
+    54: "output_delay", 56: "control_brake", 60: "encoder_type", 62: "following_error",
+    63: "encoder_direction", 80: "sdo_index",
+})
+PARAMETER_NUMBERS: Final = MappingProxyType({v: k for k, v in PARAMETER_NAMES.items()})
+assert set(PARAMETER_NAMES) == {n for n, c in COMMANDS.items() if c.kind is CommandKind.PARAMETER}
+
+# Defaults of the parameter array, in user units. None: nothing is stored, the
+# drive's own value stands (reads return it, "write all parameters" skips it).
+# 19 (device code) comes from the axis itself.
+DEFAULTS: Final[Mapping[int, Optional[Number]]] = MappingProxyType({
+    2: None, 5: None, 6: None, 20: 1, 21: 1, 22: 1, 23: None, 24: None, 25: 0.0,
+    26: None, 27: None, 28: None, 29: 0, 30: 1, 31: 3, 32: 0, 40: None, 41: None,
+    42: None, 43: None, 53: None, 54: 0, 56: 0, 60: 0, 62: None, 63: None,
+    80: 0x60410002,  # statusword, 2 bytes: a harmless selector for 81
+})
+
+# Command 19 may name the EPOS4 code too (the command table lists 0..4 of spec 3.5).
+DEVICE_CODE_SPEC: Final = CommandSpec(
+    19, "Device Code", True, True, CommandKind.PARAMETER, parameter=2,
+    choices=frozenset(int(c) for c in DeviceCode),
+)
+
+
+def parameter_spec(cmd: int) -> CommandSpec:
+    """The command spec used to validate parameter ``cmd`` (19 widened to code 5)."""
+    return DEVICE_CODE_SPEC if cmd == 19 else COMMANDS[cmd]
+
+
+def to_stored(spec: CommandSpec, value: Number, factor: int) -> int:
+    """The stored (integer) form of a user value of parameter ``spec``."""
+    if spec.scaled:
+        return stored_parameter(value, factor)
+    return int(value)
+
+
+def from_stored(spec: CommandSpec, stored: int, factor: int) -> Number:
+    """The user value of a stored parameter."""
+    return Scaling(factor).from_drive(stored) if spec.scaled else stored
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """One bus (spec 3.3) and the backend that reaches it, with its options."""
+
+    name: str
+    backend: str
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class AxisConfig:
+    """One row of the axis table (spec 3)."""
+
+    addr: int
+    device: DeviceCode = DeviceCode.C_DC_NOT_DEFINED
+    internal: bool = False
+    bus_offset: BusOffset = BusOffset.CAN1
+    node_id: int = 0
+    position_factor: int = 1
+    # Configured parameter values in user units, by command number.
+    parameters: Mapping[int, Number] = field(default_factory=dict)
+
+    @property
+    def bus(self) -> str:
+        return BUS_NAMES[self.bus_offset]
+
+    @property
+    def has_node(self) -> bool:
+        """An internal axis with node id 0 is the controller's own (spec 3 example)."""
+        return self.node_id != 0
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Timing and behaviour of the command layer (the ``[bridge]`` table)."""
+
+    ack_timeout: float = 2.0  # bound for the ACK of 00 and 04 (drive acceptance)
+    state_timeout: float = 1.0  # bound for one state machine step / mode change
+    reset_timeout: float = 5.0  # bound for a node to answer again after NMT reset
+    reset_delay: float = 0.05  # pause after the NMT reset before polling the node
+    poll_interval: float = 0.002  # pause between statusword polls
+    debug: bool = False  # initial value of command 91
+    state_file: Optional[Path] = None
+
+    def __post_init__(self) -> None:
+        for name in ("ack_timeout", "state_timeout", "reset_timeout"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"[bridge] {name} must be positive")
+        for name in ("reset_delay", "poll_interval"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"[bridge] {name} must not be negative")
+
+
+@dataclass(frozen=True)
+class AxisTable:
+    """Axes by AxAddr, buses by name, settings."""
+
+    axes: Mapping[int, AxisConfig]
+    buses: Mapping[str, BusConfig]
+    settings: Settings = Settings()
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @property
+    def internal_axes(self) -> Tuple[AxisConfig, ...]:
+        return tuple(a for a in self.axes.values() if a.internal)
+
+    @classmethod
+    def load(cls, path: Union[str, Path]) -> "AxisTable":
+        """Read a TOML axis table; :class:`ConfigError` names the problem."""
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise ConfigError(f"cannot read axis table {path}: {exc.strerror or exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+        return cls.from_mapping(data, base_dir=path.parent, source=str(path))
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], *, base_dir: Optional[Path] = None,
+                     source: str = "axis table") -> "AxisTable":
+        unknown = set(data) - {"bridge", "bus", "axis"}
+        if unknown:
+            raise ConfigError(f"{source}: unknown top-level keys {sorted(unknown)}")
+        settings = _settings(dict(data.get("bridge", {})), base_dir, source)
+        buses = {}
+        for name, opts in dict(data.get("bus", {})).items():
+            if name not in BUS_NAMES.values():
+                raise ConfigError(f"{source}: bus {name!r} is not one of {sorted(BUS_NAMES.values())}")
+            opts = dict(opts)
+            backend = opts.pop("backend", None)
+            if not isinstance(backend, str):
+                raise ConfigError(f"{source}: [bus.{name}] needs backend = \"canopen\"|\"epos\"|\"sim\"")
+            buses[name] = BusConfig(name, backend, MappingProxyType(opts))
+        axes: Dict[int, AxisConfig] = {}
+        for position, row in enumerate(data.get("axis", []), start=1):
+            axis = _axis(dict(row), position, source)
+            if axis.addr in axes:
+                raise ConfigError(f"{source}: AxAddr {axis.addr} appears twice")
+            axes[axis.addr] = axis
+        return cls(MappingProxyType(dict(sorted(axes.items()))), MappingProxyType(buses), settings)
+
+
+def _settings(raw: Dict[str, Any], base_dir: Optional[Path], source: str) -> Settings:
+    state = raw.pop("state_file", None)
+    known = {f for f in Settings.__dataclass_fields__ if f != "state_file"}
+    unknown = set(raw) - known
+    if unknown:
+        raise ConfigError(f"{source}: unknown [bridge] keys {sorted(unknown)}")
+    state_path = None
+    if state:
+        state_path = Path(state)
+        if not state_path.is_absolute() and base_dir is not None:
+            state_path = base_dir / state_path
+    try:
+        return Settings(**raw, state_file=state_path)
+    except TypeError as exc:
+        raise ConfigError(f"{source}: [bridge]: {exc}") from None
+
+
+_AXIS_KEYS: Final = {"addr", "device", "internal", "bus_offset", "node_id", "position_factor",
+                     "parameters"}
+
+
+def _axis(row: Dict[str, Any], position: int, source: str) -> AxisConfig:
+    where = f"{source}: axis #{position}"
+    unknown = set(row) - _AXIS_KEYS
+    if unknown:
+        raise ConfigError(f"{where}: unknown keys {sorted(unknown)}")
+    addr = row.get("addr", position)  # spec 3.1: filled in from the position
+    device = row.get("device", 0)
+    if isinstance(device, str):
+        if device.lower() not in DEVICE_NAMES:
+            raise ConfigError(f"{where}: device {device!r} is not one of {sorted(DEVICE_NAMES)}")
+        device = DEVICE_NAMES[device.lower()]
+    try:
+        device = DeviceCode(device)
+        bus_offset = BusOffset(row.get("bus_offset", 0))
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    factor = row.get("position_factor", 1)
+    if isinstance(factor, bool) or not isinstance(factor, int) or factor <= 0:
+        raise ConfigError(f"{where}: position_factor must be a positive integer")
+    internal = row.get("internal", False)
+    node_id = row.get("node_id", 0)
+    if not isinstance(internal, bool) or not isinstance(addr, int) or not isinstance(node_id, int):
+        raise ConfigError(f"{where}: addr and node_id are integers, internal is true/false")
+    params = _parameters(dict(row.get("parameters", {})), factor, f"{where} (AxAddr {addr})")
+    return AxisConfig(addr, device, internal, bus_offset, node_id, factor,
+                      MappingProxyType(params))
+
+
+def _parameters(raw: Dict[str, Any], factor: int, where: str) -> Dict[int, Number]:
+    out: Dict[int, Number] = {}
+    for key, value in raw.items():
+        cmd = PARAMETER_NUMBERS.get(key)
+        if cmd is None and key.isdigit() and int(key) in PARAMETER_NAMES:
+            cmd = int(key)
+        if cmd is None or cmd == 19:
+            raise ConfigError(f"{where}: unknown parameter {key!r} (the device code is 'device')")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: parameter {key} must be a number")
+        text = str(value) if isinstance(value, int) else format(Decimal(repr(value)), "f")
+        spec = parameter_spec(cmd)
+        try:
+            user = parse_value(spec, text)
+            to_stored(spec, user, factor)  # range check of the scaled value
+        except InvalidCommand as exc:
+            raise ConfigError(f"{where}: parameter {key}: {exc}") from None
+        out[cmd] = user
+    return out
+
+
+def _validate(table: AxisTable) -> None:
+    seen_nodes: Dict[Tuple[str, int], int] = {}
+    external_seen = False
+    for addr, axis in table.axes.items():
+        if not 1 <= addr <= MAX_AXIS:
+            raise ConfigError(f"AxAddr {addr} is not 1..{MAX_AXIS} (spec 3)")
+        # Spec 3.2: "make sure that all marked internal axes are at the beginning".
+        if axis.internal and external_seen:
+            raise ConfigError(f"internal axis {addr} follows a non-internal axis (spec 3.2)")
+        external_seen = external_seen or not axis.internal
+        if not axis.has_node:
+            if not axis.internal:
+                raise ConfigError(f"axis {addr}: node_id 0 is only allowed for internal axes")
+            continue
+        limit = 65535 if axis.bus_offset is BusOffset.ETHERCAT else 127
+        if not 1 <= axis.node_id <= limit:
+            raise ConfigError(f"axis {addr}: node_id {axis.node_id} is not 1..{limit} (spec 3.4)")
+        if axis.bus not in table.buses:
+            raise ConfigError(f"axis {addr} is on bus {axis.bus!r} (bus_offset "
+                              f"{int(axis.bus_offset)}) but there is no [bus.{axis.bus}]")
+        key = (axis.bus, axis.node_id)
+        if key in seen_nodes:
+            raise ConfigError(f"axes {seen_nodes[key]} and {addr} share node {axis.node_id} "
+                              f"on {axis.bus}")
+        seen_nodes[key] = addr
+        slave = axis.parameters.get(29, 0)
+        if slave and (slave == addr or slave not in table.axes):
+            raise ConfigError(f"axis {addr}: slave axis {slave} is not another configured axis")
+
+
+def simulated_table(count: int = 1, *, state_file: Optional[Path] = None,
+                    bus_options: Optional[Mapping[str, Any]] = None) -> AxisTable:
+    """``count`` simulated EPOS4 drives: node 1 is the gateway itself, 2..count behind it.
+
+    Position factor 1000: the simulator counts increments, so user units are
+    mm at 1000 inc/mm.
+    """
+    if not 1 <= count <= MAX_AXIS:
+        raise ConfigError(f"--axes must be 1..{MAX_AXIS}, not {count}")
+    axes = {
+        n: AxisConfig(n, DeviceCode.C_DC_MAXON_EPOS4, False, BusOffset.CAN1, n, 1000)
+        for n in range(1, count + 1)
+    }
+    bus = BusConfig("can1", "sim", MappingProxyType(dict(bus_options or {})))
+    return AxisTable(MappingProxyType(axes), MappingProxyType({"can1": bus}),
+                     Settings(state_file=state_file))
+
+
+# --- the parameter array ------------------------------------------------------
+
+
+class ParameterStore:
+    """The per-axis parameter arrays: TOML values overlaid with the state file.
+
+    Thread-safe: bus worker threads read and write it. Values are in stored
+    form (integers); :meth:`user` converts. Only values set by S commands go
+    to the state file, so later edits of the TOML take effect for the rest.
+    """
+
+    FORMAT: Final = "tcp-bridge-state"
+    VERSION: Final = 1
+
+    def __init__(self, table: AxisTable, state_file: Optional[Path] = None) -> None:
+        self.table = table
+        self.state_file = state_file if state_file is not None else table.settings.state_file
+        self._lock = threading.Lock()
+        self._base: Dict[int, Dict[int, int]] = {}
+        for addr, axis in table.axes.items():
+            values = {19: int(axis.device)}
+            for cmd, default in DEFAULTS.items():
+                user = axis.parameters.get(cmd, default)
+                if user is not None:
+                    values[cmd] = to_stored(COMMANDS[cmd], user, axis.position_factor)
+            self._base[addr] = values
+        self._overrides: Dict[int, Dict[int, int]] = {addr: {} for addr in table.axes}
+        if self.state_file is not None:
+            self._load()
+
+    # -- access ---------------------------------------------------------------
+
+    def get(self, addr: int, cmd: int) -> Optional[int]:
+        """The stored value of parameter ``cmd`` of axis ``addr``, None if unset."""
+        with self._lock:
+            value = self._overrides[addr].get(cmd)
+            return self._base[addr].get(cmd) if value is None else value
+
+    def user(self, addr: int, cmd: int) -> Optional[Number]:
+        stored = self.get(addr, cmd)
+        if stored is None:
+            return None
+        return from_stored(COMMANDS[cmd], stored, self.table.axes[addr].position_factor)
+
+    def set(self, addr: int, cmd: int, stored: int) -> None:
+        """Store a value set by an S command and persist the state file."""
+        with self._lock:
+            self._overrides[addr][cmd] = int(stored)
+            if self.state_file is not None:
+                self._save_locked()
+
+    def set_user(self, addr: int, cmd: int, user: Number) -> int:
+        stored = to_stored(COMMANDS[cmd], user, self.table.axes[addr].position_factor)
+        self.set(addr, cmd, stored)
+        return stored
+
+    def scaling(self, addr: int) -> Scaling:
+        """Conversion parameters of the axis now: factor, inversion (22), offset (25)."""
+        axis = self.table.axes[addr]
+        inversion = self.get(addr, 22)
+        offset = self.user(addr, 25)
+        return Scaling(axis.position_factor, -1 if inversion == -1 else 1,
+                       float(offset) if offset is not None else 0.0)
+
+    def device(self, addr: int) -> DeviceCode:
+        code = self.get(addr, 19)
+        try:
+            return DeviceCode(code)
+        except ValueError:
+            return DeviceCode.C_DC_NOT_DEFINED
+
+    def snapshot(self, addr: int) -> Dict[int, int]:
+        with self._lock:
+            return {**self._base[addr], **self._overrides[addr]}
+
+    # -- state file -------------------------------------------------------------
+
+    def _load(self) -> None:
+        assert self.state_file is not None
+        try:
+            text = self.state_file.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise ConfigError(f"cannot read state file {self.state_file}: {exc}") from None
+        try:
+            data = json.loads(text)
+            if data.get("format") != self.FORMAT or data.get("version") != self.VERSION:
+                raise ValueError("not a tcp-bridge state file of version 1")
+            axes = data["axes"]
+            for key, entry in axes.items():
+                addr = int(key)
+                axis = self.table.axes.get(addr)
+                if axis is None:
+                    log.warning("state file: axis %d is no longer configured; ignored", addr)
+                    continue
+                if entry.get("position_factor") != axis.position_factor:
+                    log.warning("state file: axis %d had position factor %s, now %d; its "
+                                "stored parameters are ignored", addr,
+                                entry.get("position_factor"), axis.position_factor)
+                    continue
+                for cmd_key, value in entry["parameters"].items():
+                    cmd = int(cmd_key)
+                    if cmd not in PARAMETER_NAMES or not isinstance(value, int):
+                        raise ValueError(f"bad entry {cmd_key}={value!r} for axis {addr}")
+                    self._overrides[addr][cmd] = value
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise ConfigError(f"state file {self.state_file} is damaged ({exc}); "
+                              "move it away to start from the axis table") from None
+
+    def _save_locked(self) -> None:
+        assert self.state_file is not None
+        data = {
+            "format": self.FORMAT,
+            "version": self.VERSION,
+            "axes": {
+                str(addr): {
+                    "position_factor": self.table.axes[addr].position_factor,
+                    "parameters": {str(c): v for c, v in sorted(values.items())},
+                }
+                for addr, values in sorted(self._overrides.items()) if values
+            },
+        }
+        write_atomically(self.state_file, json.dumps(data, indent=1) + "\n")
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write ``text`` so that ``path`` holds either the old or the new content."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise

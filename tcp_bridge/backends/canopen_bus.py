@@ -1,0 +1,73 @@
+"""``canopen``: a CAN adapter through python-can, one ``canopen.RemoteNode`` per axis.
+
+Bus options (``[bus.can1]`` in the axis table); everything not listed here is
+passed to ``canopen.Network.connect``, i.e. to ``can.Bus``, so any python-can
+interface works::
+
+    interface = "socketcan"   # or "pcan", "kvaser", "slcan", "virtual", ...
+    channel = "can0"
+    bitrate = 500000          # spec 1.1 lists the PSI rates: 125k, 250k, 500k, 1M
+    eds = "default"           # the shipped EPOS4 EDS; a path; or "none"
+    sdo_timeout = 0.3         # seconds per SDO response (canopen's RESPONSE_TIMEOUT)
+    sdo_retries = 1           # canopen's MAX_RETRIES (1: no retry)
+
+The command layer uses ``node.sdo.upload/download`` only, so the EDS matters
+for tools, not for the bridge; "none" gives an empty dictionary.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Sequence
+
+import canopen
+
+from ..axes import AxisConfig, BusConfig, ConfigError
+
+
+def object_dictionary(eds: Any, node_id: int) -> Any:
+    """The dictionary of a node: ``"default"`` (EPOS4 EDS), ``"none"`` or an EDS/DCF path."""
+    if eds in (None, "none", ""):
+        return canopen.ObjectDictionary()
+    if eds == "default":
+        from epos_link.simulator.od import EDS_PATH
+
+        eds = str(EDS_PATH)
+    try:
+        return canopen.import_od(str(eds), node_id)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"cannot load EDS {eds}: {exc}") from None
+
+
+class CanopenBackend:
+    """One ``canopen.Network`` on one python-can bus."""
+
+    def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = ()) -> None:
+        options: Dict[str, Any] = dict(bus.options)
+        self.name = bus.name
+        self.eds = options.pop("eds", "default")
+        self.sdo_timeout = float(options.pop("sdo_timeout", 0.3))
+        self.sdo_retries = int(options.pop("sdo_retries", 1))
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.05  # a quick notifier stop on close
+        try:
+            self.network.connect(**options)
+        except Exception as exc:  # python-can raises CanError, OSError, ValueError, ImportError...
+            raise ConfigError(f"bus {bus.name}: cannot open CAN interface "
+                              f"{options.get('interface', '(python-can default)')} "
+                              f"{options.get('channel', '')}: {exc}") from None
+        self.nodes: Dict[int, canopen.RemoteNode] = {}
+
+    def node(self, node_id: int) -> canopen.RemoteNode:
+        node = self.nodes.get(node_id)
+        if node is None:
+            node = canopen.RemoteNode(node_id, object_dictionary(self.eds, node_id))
+            node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
+            node.sdo.MAX_RETRIES = self.sdo_retries
+            self.network.add_node(node)
+            self.nodes[node_id] = node
+        return node
+
+    def close(self) -> None:
+        try:
+            self.network.disconnect()
+        except Exception:  # already gone (adapter unplugged): nothing left to release
+            pass

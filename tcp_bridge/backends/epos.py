@@ -1,0 +1,53 @@
+"""``epos``: an EPOS4 by any ``epos_link`` URL; its CAN gateway reaches the other nodes.
+
+Bus options::
+
+    url = "/dev/ttyACM0"      # any epos_link URL: serial path, usb://, socket://, sim://
+    baudrate = 115200         # serial links only
+    timeout = 0.5             # seconds per request (EposClient)
+    retries = 1
+    gateway_node_id = 1       # the EPOS4's own node id (default: the first axis's)
+    eds = "none"              # "default" (EPOS4 EDS), a path, or "none"
+
+One ``EposClient`` is shared by all nodes of the bus (it is thread-safe and
+the bus worker serialises the traffic anyway); each axis gets a canopen
+node from ``epos_link.connect_node`` with canopen's ``SdoBase`` interface.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence
+
+from ..axes import AxisConfig, BusConfig, ConfigError
+from .canopen_bus import object_dictionary
+
+
+class EposBackend:
+    def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = (), *,
+                 client: Optional[Any] = None) -> None:
+        from epos_link.client import EposClient
+
+        options: Dict[str, Any] = dict(bus.options)
+        self.eds = options.pop("eds", "none")
+        gateway = options.pop("gateway_node_id", axes[0].node_id if axes else None)
+        if client is None:
+            url = options.pop("url", None)
+            if not isinstance(url, str):
+                raise ConfigError(f"bus {bus.name}: the epos backend needs url = \"...\"")
+            try:
+                client = EposClient.open(url, gateway_node_id=gateway, **options)
+            except Exception as exc:  # TransportError, OSError, bad options
+                raise ConfigError(f"bus {bus.name}: cannot open {url}: {exc}") from None
+        self.client = client
+        self.nodes: Dict[int, Any] = {}
+
+    def node(self, node_id: int) -> Any:
+        from epos_link.canopen_adapter import connect_node
+
+        node = self.nodes.get(node_id)
+        if node is None:
+            node = connect_node(self.client, node_id, object_dictionary(self.eds, node_id))
+            self.nodes[node_id] = node
+        return node
+
+    def close(self) -> None:
+        self.client.close()

@@ -1,0 +1,77 @@
+"""``sim``: the embedded simulated EPOS4, reached through the epos path.
+
+The bus's first axis is the simulated EPOS4 itself (its node id is the
+gateway's), the others are simulated drives on the EPOS4's CAN gateway
+(``epos_link.simulator.core.Epos4Simulator``). The bridge reaches them
+exactly as it reaches real hardware with the ``epos`` backend: MAXON SERIAL V2
+frames through an ``EposClient`` and ``epos_link.connect_node``, so the whole
+chain runs.
+
+Bus options::
+
+    link = "inprocess"   # "inprocess" (sim:// transport, instant) or "pty"
+    baud = 115200        # with link = "pty": pace the simulated wire like a UART
+    timeout = 0.5        # EposClient request timeout
+    gateway_timeout = 0.3  # the simulated gateway's SDO timeout for absent nodes
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence
+
+from ..axes import AxisConfig, BusConfig, ConfigError
+from .epos import EposBackend
+
+
+class SimBackend:
+    def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = ()) -> None:
+        from epos_link.client import EposClient
+        from epos_link.simulator.core import Epos4Simulator
+
+        options: Dict[str, Any] = dict(bus.options)
+        node_ids = [a.node_id for a in axes] or [1]
+        gateway = int(options.pop("gateway_node_id", node_ids[0]))
+        link = options.pop("link", "inprocess")
+        baud: Optional[int] = options.pop("baud", None)
+        timeout = float(options.pop("timeout", 0.5))
+        gateway_timeout = float(options.pop("gateway_timeout", 0.3))
+        if options:
+            raise ConfigError(f"bus {bus.name}: unknown sim options {sorted(options)}")
+        self.simulator = Epos4Simulator(gateway, [n for n in node_ids if n != gateway],
+                                        gateway_timeout=gateway_timeout)
+        self.link: Any = None
+        try:
+            if link == "pty":
+                from epos_link.simulator.link import LinkOptions, PtyLink
+
+                self.link = PtyLink(self.simulator, LinkOptions(baud=baud)).start()
+                client = EposClient.open(self.link.path, baudrate=baud or 115200,
+                                         gateway_node_id=gateway, timeout=timeout)
+            elif link == "inprocess":
+                from epos_link.simulator.transport import SimTransport
+
+                client = EposClient(SimTransport(self.simulator), gateway_node_id=gateway,
+                                    timeout=timeout)
+            else:
+                raise ConfigError(f"bus {bus.name}: sim link must be \"inprocess\" or \"pty\"")
+            self.epos = EposBackend(BusConfig(bus.name, "epos", {}), axes, client=client)
+        except BaseException:
+            self._close_simulator()
+            raise
+
+    def node(self, node_id: int) -> Any:
+        return self.epos.node(node_id)
+
+    def drive(self, node_id: int) -> Any:
+        """The simulated drive model of ``node_id`` (fault injection in tests)."""
+        return self.simulator.drive(node_id)
+
+    def _close_simulator(self) -> None:
+        if self.link is not None:
+            self.link.close()
+        self.simulator.close()
+
+    def close(self) -> None:
+        try:
+            self.epos.close()
+        finally:
+            self._close_simulator()

@@ -1,0 +1,268 @@
+"""The command layer: a parsed request in, a 30-byte reply (or an exception) out.
+
+::
+
+    Request --prepare()--> Job --execute()--> reply bytes
+              (event loop:          (bus worker thread: SDO transfers,
+               validate, convert;    one ThreadPoolExecutor(max_workers=1)
+               InvalidCommand=CAN)   per bus; DeviceFailure = NAK)
+
+:meth:`Engine.prepare` checks everything a request says (axis, command, R/W
+rights, value, conversions, ranges) before any transfer is planned, so a
+malformed request never reaches a drive. :meth:`Engine.execute` runs the job on
+its bus's worker, so SDO traffic of one bus is serialised, buses run in
+parallel, and the event loop never blocks. Exceptions propagate: the server
+has the one place that turns them into replies
+(:func:`tcp_bridge.protocol.format_error_reply`).
+
+A move of an axis with a slave (commands 29/30) also moves the slave with its
+direction; command 90 moves the configured internal axes. These *companion*
+jobs run on their own buses concurrently with the main one; the reply is ACK
+only if all of them succeed.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from importlib import metadata
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+from .axes import AxisConfig, AxisTable, ParameterStore, parameter_spec
+from .commands import CommandSpec, resolve
+from .errors import InvalidCommand
+from .operations import AxisOps, note_failure
+from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
+from .sdo import SdoPort
+from .sequences import Timing
+from .units import parse_value
+
+log = logging.getLogger(__name__)
+
+SPEC_REVISION = "2.3"
+GLOBAL_COMMANDS = frozenset({91, 99})  # answered for any axis number
+
+
+def software_version() -> str:
+    """Command 99: the spec revision served and the package version, e.g. "2.3-py0.1.0"."""
+    try:
+        version = metadata.version("epos-link")
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        version = "0+unknown"
+    return f"{SPEC_REVISION}-py{version}"
+
+
+@dataclass
+class Job:
+    """One planned request: where it runs and what it does."""
+
+    request: Request
+    run: Callable[[], bytes]
+    bus: Optional[str] = None  # worker to run on; None: no drive involved
+    blocking: bool = False  # no drive, but file I/O (state file): default executor
+    ops: Optional[AxisOps] = None
+    companions: Tuple["Job", ...] = field(default_factory=tuple)
+
+    def __call__(self) -> bytes:
+        try:
+            return self.run()
+        except Exception as exc:
+            if self.ops is not None:
+                note_failure(self.ops, exc)
+            raise
+
+
+class Engine:
+    """All axes, their parameters and their bus workers; the one command implementation."""
+
+    def __init__(self, table: AxisTable, nodes: Mapping[int, Any], *,
+                 params: Optional[ParameterStore] = None, backends: Sequence[Any] = (),
+                 job_timeout: float = 60.0, **cia402_options: Any) -> None:
+        self.table = table
+        self.params = params if params is not None else ParameterStore(table)
+        self.debug = table.settings.debug
+        self.job_timeout = job_timeout
+        self.version = software_version()
+        self._backends = list(backends)
+        s = table.settings
+        timing = Timing(s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay,
+                        s.poll_interval)
+        self.axes: Dict[int, AxisOps] = {}
+        for addr, axis in table.axes.items():
+            node = nodes.get(addr)
+            port = None
+            if node is not None:
+                port = SdoPort(node, name=f"axis {addr} ({axis.bus} node {axis.node_id})",
+                               debug=lambda: self.debug)
+            self.axes[addr] = AxisOps(axis, self.params, port, timing, **cia402_options)
+        self._executors: Dict[str, ThreadPoolExecutor] = {
+            bus: ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"bus-{bus}")
+            for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
+        }
+
+    # -- planning (event loop, no I/O) -------------------------------------------------
+
+    def prepare(self, request: Request) -> Job:
+        """Validate ``request`` completely and plan it; InvalidCommand (CAN) if it is not valid."""
+        spec = resolve(request)
+        if request.cmd in GLOBAL_COMMANDS:
+            return self._prepare_global(request)
+        ops = self.axes.get(request.axis)
+        if ops is None:
+            raise InvalidCommand(f"axis {request.axis} is not configured",
+                                 axis=request.axis, kind=request.kind, cmd=request.cmd)
+        try:
+            if isinstance(request, ReadRequest):
+                return self._prepare_read(request, spec, ops)
+            return self._prepare_write(request, spec, ops)
+        except InvalidCommand as exc:
+            # Conversions know only the command: give the reply its full header.
+            raise InvalidCommand(str(exc), axis=request.axis, kind=request.kind,
+                                 cmd=request.cmd) from exc
+
+    def _prepare_global(self, request: Request) -> Job:
+        if isinstance(request, ReadRequest):
+            value: Any = self.version if request.cmd == 99 else int(self.debug)
+            reply = format_read_reply(request.axis, request.cmd, value)
+            return Job(request, lambda: reply)
+        self.debug = bool(parse_value(resolve(request), request.value))  # 91
+        reply = format_write_reply(request.axis, request.cmd, Status.ACK)
+        return Job(request, lambda: reply)
+
+    def _bus(self, ops: AxisOps, spec: CommandSpec) -> Optional[str]:
+        return ops.config.bus if ops.port is not None and ops.needs_bus(spec) else None
+
+    def _prepare_read(self, request: ReadRequest, spec: CommandSpec, ops: AxisOps) -> Job:
+        plan = ops.plan_read(spec)
+        axis, cmd = request.axis, request.cmd
+        return Job(request, lambda: format_read_reply(axis, cmd, plan()),
+                   bus=self._bus(ops, spec), ops=ops)
+
+    def _prepare_write(self, request: Request, spec: CommandSpec, ops: AxisOps) -> Job:
+        assert not isinstance(request, ReadRequest)
+        value = parse_value(parameter_spec(spec.number) if spec.number == 19 else spec,
+                            request.value)
+        ack = format_write_reply(request.axis, request.cmd, Status.ACK)
+        companions: Tuple[Job, ...] = ()
+        if spec.number == 90:
+            plan, companions = self._plan_combined_move(request, int(value))
+        else:
+            plan = ops.plan_write(spec, value)
+            if spec.number == 0:
+                companions = self._plan_slave_move(request, ops, int(value))
+
+        def run() -> bytes:
+            plan()
+            return ack
+        bus = self._bus(ops, spec)
+        blocking = bus is None and self.params.state_file is not None
+        return Job(request, run, bus=bus, blocking=blocking, ops=ops, companions=companions)
+
+    def _plan_slave_move(self, request: Request, master: AxisOps, how: int) -> Tuple[Job, ...]:
+        """Spec 29/30: the slave follows the master's move, with its direction."""
+        slave_addr = self.params.get(master.addr, 29) or 0
+        slave = self.axes.get(slave_addr)
+        if slave is None or slave is master or slave.port is None:
+            return ()
+        direction = -1 if self.params.get(master.addr, 30) == -1 else 1
+        target = None
+        if how in (1, 2):
+            target = self.params.user(master.addr, 2)
+        elif how == 3:
+            target = self.params.user(master.addr, 5)
+        plan = slave.plan_move(how, slave.scaling(), direction, target)
+        return (self._companion(request, slave, plan),)
+
+    def _plan_combined_move(self, request: Request, how: int) -> Tuple[Callable[[], None], Tuple[Job, ...]]:
+        """Spec 90 with 3.2: 0 stop, 1 LINR (relative by each 02), 2 LINA to zero."""
+        internal = [self.axes[a.addr] for a in self.table.internal_axes
+                    if self.axes[a.addr].port is not None]
+        if not internal:
+            raise InvalidCommand("no internal axes with a drive are configured (spec 3.2)",
+                                 axis=request.axis, kind=request.kind, cmd=request.cmd)
+        jobs = []
+        for ops in internal:
+            if how == 0:
+                plan = ops.plan_move(8, ops.scaling())
+            elif how == 1:
+                plan = ops.plan_move(2, ops.scaling())
+            else:
+                plan = ops.plan_move(1, ops.scaling(), target=0.0)
+            jobs.append(self._companion(request, ops, plan))
+        return (lambda: None), tuple(jobs)
+
+    def _companion(self, request: Request, ops: AxisOps, plan: Callable[[], None]) -> Job:
+        def run() -> bytes:
+            plan()
+            return b""
+        return Job(request, run, bus=ops.config.bus, ops=ops)
+
+    # -- execution -----------------------------------------------------------------------
+
+    async def execute(self, request: Request) -> bytes:
+        """Prepare and run ``request``; returns the reply, raises on failure."""
+        return await self.run(self.prepare(request))
+
+    async def run(self, job: Job) -> bytes:
+        if job.bus is None and not job.blocking and not job.companions:
+            return job()  # nothing to wait for: answered on the loop
+        futures = [self._submit(j) for j in (job, *job.companions)]
+        results = await asyncio.wait_for(
+            asyncio.gather(*futures, return_exceptions=True), self.job_timeout)
+        for result in results:
+            if isinstance(result, BaseException):
+                raise result
+        return results[0]
+
+    def _submit(self, job: Job) -> "asyncio.Future[bytes]":
+        loop = asyncio.get_running_loop()
+        if job.bus is not None:
+            return loop.run_in_executor(self._executors[job.bus], job)
+        if job.blocking:
+            return loop.run_in_executor(None, job)
+        future: asyncio.Future[bytes] = loop.create_future()
+        try:
+            future.set_result(job())
+        except Exception as exc:
+            future.set_exception(exc)
+        return future
+
+    def execute_sync(self, request: Request) -> bytes:
+        """Run a request in the caller's thread (tests, tools); raises on failure."""
+        job = self.prepare(request)
+        results = [j() for j in (job, *job.companions)]
+        return results[0]
+
+    def close(self, wait: bool = True) -> None:
+        """Finish the transfers in flight (``wait``), then close the backends."""
+        for executor in self._executors.values():
+            executor.shutdown(wait=wait, cancel_futures=True)
+        for backend in self._backends:
+            try:
+                backend.close()
+            except Exception:  # closing one backend must not keep the others open
+                log.exception("closing backend %r failed", backend)
+
+
+def build_engine(table: AxisTable, *, params: Optional[ParameterStore] = None,
+                 **options: Any) -> Engine:
+    """Open every bus's backend (registry in :mod:`tcp_bridge.backends`) and an Engine."""
+    from .backends import open_backend
+
+    nodes: Dict[int, Any] = {}
+    backends: List[Any] = []
+    try:
+        for name, bus in table.buses.items():
+            axes: List[AxisConfig] = [a for a in table.axes.values() if a.bus == name and a.has_node]
+            if not axes:
+                continue
+            backend = open_backend(bus, axes)
+            backends.append(backend)
+            for axis in axes:
+                nodes[axis.addr] = backend.node(axis.node_id)
+    except BaseException:
+        for backend in backends:
+            backend.close()
+        raise
+    return Engine(table, nodes, params=params, backends=backends, **options)

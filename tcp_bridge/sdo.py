@@ -1,0 +1,140 @@
+"""Typed SDO access to one node, over anything with canopen's SdoBase interface.
+
+The command layer never sees a backend: it gets a *node*, an object with
+
+* ``node.sdo.upload(index, subindex) -> bytes`` and
+  ``node.sdo.download(index, subindex, data: bytes)`` (canopen's ``SdoBase``,
+  which a ``canopen.RemoteNode`` has and the epos_link SDO adapter provides);
+* ``node.nmt.state = "RESET"`` (canopen's ``NmtMaster``) for command 16.
+
+:class:`SdoPort` adds the data types of the CiA 301 / CiA 402 objects the
+gateway uses (so a U16 controlword goes out as 2 bytes and a statusword comes
+back unsigned), turns every failure into :class:`~tcp_bridge.errors.DeviceFailure`
+(answered NAK), and logs each transfer when command 91 "debug print" is on.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
+
+from .errors import DeviceFailure
+
+log = logging.getLogger("tcp_bridge.sdo")
+
+# (size in bytes, signed) by (index, subindex); subindex None = every subindex.
+# Sources: CiA 301 V4.2 7.5.2 (1001h), CiA 402-2 V4.0 object descriptions;
+# 2000h: Technosoft motion error register (U16); 200Dh: Nanotec (assumed U8).
+OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
+    (0x1001, None): (1, False), (0x2000, None): (2, False), (0x200D, None): (1, False),
+    (0x603F, None): (2, False), (0x6040, None): (2, False), (0x6041, None): (2, False),
+    (0x605A, None): (2, True), (0x6060, None): (1, True), (0x6061, None): (1, True),
+    (0x6062, None): (4, True), (0x6064, None): (4, True), (0x6065, None): (4, False),
+    (0x6067, None): (4, False), (0x606C, None): (4, True), (0x607A, None): (4, True),
+    (0x607C, None): (4, True), (0x607D, None): (4, True), (0x607F, None): (4, False),
+    (0x6081, None): (4, False), (0x6083, None): (4, False), (0x6084, None): (4, False),
+    (0x6085, None): (4, False), (0x6098, None): (1, True), (0x6099, None): (4, False),
+    (0x609A, None): (4, False), (0x60C5, None): (4, False), (0x60FD, None): (4, False),
+    (0x60FE, None): (4, False), (0x60FF, None): (4, True), (0x6502, None): (4, False),
+}
+
+
+def object_type(index: int, subindex: int) -> Tuple[int, bool]:
+    """(size, signed) of an object; unknown objects are 4 unsigned bytes."""
+    return OBJECT_TYPES.get((index, subindex)) or OBJECT_TYPES.get((index, None)) or (4, False)
+
+
+def encode(value: int, size: int, signed: bool) -> bytes:
+    """Little-endian ``size`` bytes; :class:`ValueError` when ``value`` does not fit."""
+    return int(value).to_bytes(size, "little", signed=signed)
+
+
+def decode(data: bytes, size: int, signed: bool) -> int:
+    """The integer in the first ``size`` bytes (fewer if the answer is shorter)."""
+    return int.from_bytes(bytes(data[:size]), "little", signed=signed)
+
+
+def _is_device_error(exc: BaseException) -> bool:
+    # canopen.SdoError (aborts, timeouts), python-can errors, OS errors, and
+    # whatever an SDO adapter raises for a failed transfer (epos_link errors).
+    if isinstance(exc, (OSError, TimeoutError)):
+        return True
+    names = {cls.__name__ for cls in type(exc).__mro__}
+    return bool(names & {"SdoError", "CanError", "EposError", "NmtError"})
+
+
+class SdoPort:
+    """Integer reads and writes of one node's objects; failures become DeviceFailure."""
+
+    def __init__(self, node: Any, *, name: str = "node",
+                 debug: Callable[[], bool] = lambda: False) -> None:
+        self.node = node
+        self.name = name
+        self._debug = debug
+
+    def upload(self, index: int, subindex: int) -> bytes:
+        try:
+            data = bytes(self.node.sdo.upload(index, subindex))
+        except Exception as exc:
+            self._trace("upload", index, subindex, None, exc)
+            self._raise_failure("read", index, subindex, exc)
+        self._trace("upload", index, subindex, data, None)
+        return data
+
+    def download(self, index: int, subindex: int, data: bytes) -> None:
+        try:
+            self.node.sdo.download(index, subindex, bytes(data))
+        except Exception as exc:
+            self._trace("download", index, subindex, data, exc)
+            self._raise_failure("write", index, subindex, exc)
+        self._trace("download", index, subindex, data, None)
+
+    def read(self, index: int, subindex: int = 0, *, size: Optional[int] = None,
+             signed: Optional[bool] = None) -> int:
+        t_size, t_signed = object_type(index, subindex)
+        return decode(self.upload(index, subindex), size or t_size,
+                      t_signed if signed is None else signed)
+
+    def write(self, index: int, subindex: int, value: int, *, size: Optional[int] = None,
+              signed: Optional[bool] = None) -> None:
+        t_size, t_signed = object_type(index, subindex)
+        size = size or t_size
+        signed = t_signed if signed is None else signed
+        try:
+            data = encode(value, size, signed)
+        except OverflowError:
+            # An unsigned object written with a negative number, or too big: the
+            # command layer range-checks first, so this is a drive-side refusal.
+            raise DeviceFailure(f"{self.name}: {value} does not fit 0x{index:04X}/{subindex} "
+                                f"({size} bytes, {'signed' if signed else 'unsigned'})") from None
+        self.download(index, subindex, data)
+
+    def nmt_reset(self) -> None:
+        """NMT "reset node" (CiA 301 7.2.8.3.2.1), unconfirmed by definition."""
+        nmt = getattr(self.node, "nmt", None)
+        try:
+            if nmt is None:
+                raise DeviceFailure(f"{self.name}: no NMT service")
+            nmt.state = "RESET"
+        except DeviceFailure:
+            raise
+        except Exception as exc:
+            if not _is_device_error(exc) and not isinstance(exc, (ValueError, AttributeError)):
+                raise
+            raise DeviceFailure(f"{self.name}: NMT reset failed: {exc}") from exc
+        if self._debug():
+            log.info("%s NMT reset node", self.name)
+
+    def _raise_failure(self, what: str, index: int, subindex: int, exc: Exception) -> NoReturn:
+        if isinstance(exc, DeviceFailure) or not _is_device_error(exc):
+            raise exc  # a bug, not a device answer, surfaces as is (still answered NAK)
+        code = getattr(exc, "code", None)
+        text = f"{self.name}: {what} 0x{index:04X}/{subindex} failed: {exc}"
+        raise DeviceFailure(text, code if isinstance(code, int) else None) from exc
+
+    def _trace(self, what: str, index: int, subindex: int, data: Optional[bytes],
+               exc: Optional[BaseException]) -> None:
+        if not self._debug():
+            return
+        shown = "" if data is None else " " + data.hex(" ")
+        outcome = f" -> {type(exc).__name__}: {exc}" if exc is not None else ""
+        log.info("%s SDO %s 0x%04X/%d%s%s", self.name, what, index, subindex, shown, outcome)
