@@ -15,7 +15,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from typing import Callable, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -31,6 +31,13 @@ NODE_ID_OBJECT = 0x2000  # maxon: Node-ID (the DIP switch value on a real EPOS4)
 HOME_POSITION = 0x30B0
 
 
+def _locked(lock: threading.RLock, fn: Callable[..., Any]) -> Callable[..., Any]:
+    def call(*args: Any, **kwargs: Any) -> Any:
+        with lock:
+            return fn(*args, **kwargs)
+    return call
+
+
 class SimulatedDrive:
     """One drive: object store, CiA 402 model and (behind the gateway) its LocalNode."""
 
@@ -40,8 +47,16 @@ class SimulatedDrive:
         self.store.set(NODE_ID_OBJECT, 0, node_id)
         self.drive = Drive(self.store, clock=clock)
         self.local_node: Optional[canopen.LocalNode] = None
+        # The serial thread and the CAN notifier thread both reach this store.
+        self.lock = threading.RLock()
+        for name in ("read", "write"):
+            setattr(self.store, name, _locked(self.lock, getattr(self.store, name)))
 
     def nmt(self, command: int) -> None:
+        with self.lock:
+            self._nmt(command)
+
+    def _nmt(self, command: int) -> None:
         if command == NmtCommand.RESET_NODE:
             self.drive.power_cycle(self.drive.clock() if self.drive.clock else None)
             self.store.set(NODE_ID_OBJECT, 0, self.node_id)
@@ -66,17 +81,17 @@ class Epos4Simulator:
             if not 1 <= nid <= 127:
                 raise ValueError(f"drive node id {nid} must be 1..127")
         self.channel = channel or f"epos-sim-{id(self):x}-{next(_channels)}"
-        self._drive_net: Optional[canopen.Network] = None
-        self.gateway: Optional[CanGateway] = None
-        if remote:
-            self._drive_net = connect_virtual(self.channel)
-            for nid in remote:
-                sim = SimulatedDrive(nid, self.clock)
-                sim.local_node = make_local_node(sim.store, nid)
-                self._drive_net.add_node(sim.local_node)
-                self.drives[nid] = sim
-            self._drive_net.subscribe(0, self._on_nmt)
-            self.gateway = CanGateway(connect_virtual(self.channel), timeout=gateway_timeout)
+        # The CAN side: every drive, the EPOS4 itself included, is a LocalNode
+        # on the virtual bus, so CAN clients reach them all directly.
+        self._drive_net: Optional[canopen.Network] = connect_virtual(self.channel)
+        for nid in remote:
+            self.drives[nid] = SimulatedDrive(nid, self.clock)
+        for nid, sim in self.drives.items():
+            sim.local_node = make_local_node(sim.store, nid)
+            self._drive_net.add_node(sim.local_node)
+        self._drive_net.subscribe(0, self._on_nmt)
+        self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
+                                                        timeout=gateway_timeout)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,
                                      initiate_carries_data=initiate_carries_data)
 
@@ -120,9 +135,10 @@ class Epos4Simulator:
     def nmt(self, node: int, command: int) -> None:
         # SendNMTService goes to the CAN bus (node 0 = all nodes) and to this
         # device itself when it is addressed.
-        if node in (0, self.node_id):
+        if node == self.node_id:
             self.own.nmt(command)
-        if self.gateway is not None and node != self.node_id:
+        elif self.gateway is not None:
+            # Node 0 is "all nodes": on the bus, where this device hears it too.
             self.gateway.nmt(node, command)
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -132,7 +148,7 @@ class Epos4Simulator:
             return
         command, target = data[0], data[1]
         for nid, sim in self.drives.items():
-            if sim is not self.own and target in (0, nid):
+            if target in (0, nid):
                 sim.nmt(command)
 
     # -- conveniences ----------------------------------------------------------------------

@@ -101,7 +101,28 @@ def load_object_dictionary(node_id: int = 1, path: Union[str, Path] = EDS_PATH) 
     """Parse the shipped EDS (or ``path``) with canopen; ``$NODEID`` becomes ``node_id``."""
     od = canopen.import_od(str(path), node_id)
     od.node_id = node_id  # import_eds sets it only from a [DeviceComissioning] section
+    add_value_descriptions(od)
     return od
+
+
+# CiA 306 EDS files have no place for value descriptions; canopen's ``.desc``
+# needs them, so the CiA 402 ones are added here (CiA 402 6060h, 605Ah).
+VALUE_DESCRIPTIONS: dict[int, dict[int, str]] = {
+    0x6060: {1: "Profile Position Mode", 3: "Profile Velocity Mode", 6: "Homing Mode"},
+    0x6061: {1: "Profile Position Mode", 3: "Profile Velocity Mode", 6: "Homing Mode"},
+    0x605A: {0: "Disable drive function", 1: "Slow down on slow down ramp",
+             2: "Slow down on quick stop ramp", 5: "Slow down on slow down ramp and stay",
+             6: "Slow down on quick stop ramp and stay"},
+}
+
+
+def add_value_descriptions(od: ObjectDictionary) -> None:
+    for index, texts in VALUE_DESCRIPTIONS.items():
+        if index in od:
+            var = od[index]
+            if isinstance(var, ODVariable):
+                for value, text in texts.items():
+                    var.add_value_description(value, text)
 
 
 def key_text(index: int, subindex: int) -> str:

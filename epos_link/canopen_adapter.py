@@ -1,0 +1,326 @@
+"""canopen's own SDO interface through an EPOS4 USB/RS232 gateway.
+
+``connect_node(url, node_id)`` returns a canopen ``RemoteNode`` (or
+``BaseNode402``) whose ``.sdo`` is an :class:`EposSdoClient`: canopen's
+``SdoBase`` with ``upload``/``download`` carried by :class:`EposClient`, the
+same trick canopen's own ``SdoServer`` uses. Everything built on ``SdoBase``
+works unchanged: ``node.sdo['Statusword'].raw``, ``.phys``, ``.bits``,
+``.desc``, records and arrays, ``var.open()``, ``node.store()``, the PDO
+configuration (``node.pdo.read()``), and ``BaseNode402`` state changes with
+``setup_402_state_machine(read_pdos=False)``.
+
+What the gateway carries (guide chapter 5): SDO, as ReadObject/WriteObject and
+segmented reads; NMT, as SendNMTService. What it cannot carry: PDO
+transmission and reception, SYNC, EMCY, heartbeat and node guarding, and a
+segmented write to a node other than the connected device (guide 2.1.2.2).
+Those raise :class:`GatewayLimitationError` naming the limitation, rather than
+canopen's "No actual Network object was assigned".
+
+Errors are canopen's: a device error code becomes ``SdoAbortedError(code)``;
+timeouts, framing and link failures become ``SdoCommunicationError``.
+"""
+from __future__ import annotations
+
+import io
+from typing import Any, Callable, Optional, Union
+
+import canopen
+from canopen.nmt import NmtMaster
+from canopen.objectdictionary import ObjectDictionary
+from canopen.profiles.p402 import BaseNode402
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+from canopen.sdo.base import SdoBase
+
+from .client import EposClient
+from .errors import (DeviceError, EposError, EposTimeoutError, GatewayNotSupportedError,
+                     RemoteProtocolError, TransportError)
+
+NMT_COB_ID = 0x000
+
+
+class GatewayLimitationError(SdoCommunicationError, GatewayNotSupportedError):
+    """A CANopen service that the EPOS4 USB/RS232 gateway cannot carry."""
+
+
+def _limitation(what: str) -> GatewayLimitationError:
+    return GatewayLimitationError(
+        f"{what} cannot be carried by the EPOS4 USB/RS232 gateway: it forwards only SDO "
+        "(ReadObject/WriteObject, segmented reads) and NMT (SendNMTService); use a CAN "
+        "adapter for PDO, SYNC, EMCY and heartbeat")
+
+
+class EposSdoClient(SdoBase):
+    """canopen's SDO interface, carried by an :class:`EposClient`."""
+
+    def __init__(self, client: EposClient, node_id: int, od: ObjectDictionary,
+                 link_node: Optional[int] = None) -> None:
+        super().__init__(0x600 + node_id, 0x580 + node_id, od)
+        self.client = client
+        # The node id put in the serial frames: 0 addresses the connected EPOS4
+        # itself (guide chapter 5), whatever its CANopen id.
+        self.node_id = node_id if link_node is None else link_node
+
+    def _call(self, fn: Callable[[], Any]) -> Any:
+        try:
+            return fn()
+        except DeviceError as exc:
+            raise SdoAbortedError(exc.code) from exc
+        except GatewayNotSupportedError as exc:
+            raise GatewayLimitationError(str(exc)) from exc
+        except (EposTimeoutError, RemoteProtocolError, TransportError) as exc:
+            raise SdoCommunicationError(str(exc)) from exc
+
+    def _size(self, index: int, subindex: int) -> Optional[int]:
+        """The object's size from the dictionary: ReadObject always returns 4 bytes."""
+        var = self.od.get_variable(index, subindex)
+        if var is not None and var.fixed_size:
+            return len(var) // 8
+        return None
+
+    def upload(self, index: int, subindex: int) -> bytes:
+        size = self._size(index, subindex)
+        return bytes(self._call(lambda: self.client.upload(self.node_id, index, subindex, size)))
+
+    def download(self, index: int, subindex: int, data: bytes, force_segment: bool = False) -> None:
+        data = bytes(data)
+        if force_segment and len(data) <= 4 and not self._is_gateway():
+            # A DOMAIN of up to 4 bytes: WriteObject carries it just as well.
+            force_segment = False
+        if force_segment and len(data) <= 4:
+            raise _limitation("a forced segmented download of 4 bytes or less")
+        self._call(lambda: self.client.download(self.node_id, index, subindex, data))
+
+    def _is_gateway(self) -> bool:
+        return self.node_id == 0 or self.node_id == self.client.gateway_node_id
+
+    def open(self, index: int, subindex: int = 0, mode: str = "rb", encoding: str = "ascii",
+             buffering: int = 1024, size: Optional[int] = None, block_transfer: bool = False,
+             force_segment: bool = False, request_crc_support: bool = True) -> Any:
+        """A file-like object over the whole value: reading uploads it at once,
+        writing downloads it when the stream is closed."""
+        if block_transfer:
+            raise _limitation("SDO block transfer")
+        binary = "b" in mode or "t" not in mode
+        if "r" in mode:
+            raw: io.IOBase = io.BytesIO(self.upload(index, subindex))
+        elif "w" in mode:
+            raw = _DownloadOnClose(lambda data: self.download(index, subindex, data, force_segment))
+        else:
+            raise ValueError(f"mode {mode!r}: use 'r' or 'w', with 'b' or 't'")
+        if binary:
+            return raw
+        return io.TextIOWrapper(raw, encoding=encoding, line_buffering=buffering == 1)  # type: ignore[arg-type]
+
+
+class _DownloadOnClose(io.BytesIO):
+    def __init__(self, send: Callable[[bytes], None]) -> None:
+        super().__init__()
+        self._send = send
+
+    def close(self) -> None:
+        if not self.closed:
+            data = self.getvalue()
+            super().close()
+            self._send(data)
+
+
+class GatewayNetwork(canopen.Network):
+    """Stands in for a CAN network: NMT goes through SendNMTService, anything
+    that needs raw CAN frames raises :class:`GatewayLimitationError`."""
+
+    def __init__(self, client: EposClient) -> None:
+        super().__init__(bus=None)
+        self.client = client
+
+    def connect(self, *args: Any, **kwargs: Any) -> "GatewayNetwork":
+        raise _limitation("a CAN bus connection")
+
+    def subscribe(self, can_id: int, callback: Callable[..., Any]) -> None:
+        # Registering interest is harmless (pdo.read() does it); nothing will arrive.
+        super().subscribe(can_id, callback)
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        if can_id == NMT_COB_ID and len(data) >= 2:
+            command, node = data[0], data[1]
+            try:
+                self.client.nmt(node, command)
+            except EposError as exc:
+                raise SdoCommunicationError(f"NMT through the gateway failed: {exc}") from exc
+            return
+        kind = "a SYNC message" if can_id == 0x80 else f"a CAN frame with COB-ID 0x{can_id:03X} (PDO)"
+        raise _limitation(kind)
+
+    def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
+        raise _limitation(f"periodic CAN frames (COB-ID 0x{can_id:03X}: PDO, SYNC or heartbeat)")
+
+
+class _GatewayNmt(NmtMaster):
+    def wait_for_heartbeat(self, timeout: float = 10) -> str:
+        raise _limitation("heartbeat")
+
+    def wait_for_bootup(self, timeout: float = 10) -> None:
+        raise _limitation("the boot-up message")
+
+    def start_node_guarding(self, period: float) -> None:
+        raise _limitation("node guarding")
+
+
+class _GatewayNodeMixin:
+    """Shared by the RemoteNode and BaseNode402 flavours: SDO on the gateway."""
+
+    _epos_client: EposClient
+    _link_node: Optional[int] = None
+
+    def add_sdo(self, rx_cobid: int, tx_cobid: int) -> EposSdoClient:
+        # RemoteNode.__init__ calls this; building the client here (instead of
+        # replacing node.sdo afterwards) keeps the PDO maps on the same client.
+        client = EposSdoClient(self._epos_client, self.id, self.object_dictionary,  # type: ignore[attr-defined]
+                               self._link_node)
+        self.sdo_channels.append(client)  # type: ignore[attr-defined]
+        return client
+
+    def _attach_gateway(self) -> None:
+        node: Any = self
+        network = GatewayNetwork(self._epos_client)
+        node.nmt = _GatewayNmt(node.id)
+        node.network = network
+        for part in (node.sdo, node.pdo, node.tpdo, node.rpdo, node.nmt, node.emcy):
+            part.network = network
+        for pdo_map in list(node.tpdo.map.values()) + list(node.rpdo.map.values()):
+            pdo_map.wait_for_reception = _refuse_reception  # instance only
+
+    @property
+    def epos_client(self) -> EposClient:
+        return self._epos_client
+
+    def close(self) -> None:
+        """Close the link (and the client) this node was opened with."""
+        self._epos_client.close()
+
+    def __enter__(self) -> Any:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _refuse_reception(timeout: float = 10) -> float:
+    raise _limitation("PDO reception")
+
+
+class EposRemoteNode(_GatewayNodeMixin, canopen.RemoteNode):
+    def __init__(self, node_id: int, od: Any, client: EposClient,
+                 link_node: Optional[int] = None) -> None:
+        self._epos_client = client
+        self._link_node = link_node
+        canopen.RemoteNode.__init__(self, node_id, od)
+        self._attach_gateway()
+
+
+class EposNode402(_GatewayNodeMixin, BaseNode402):
+    """BaseNode402 over SDO alone. The state machine's timeouts are widened for
+    a serial link: each step is a WriteObject and polls of ReadObject (about
+    2 ms a round trip at 115200 baud, more through the gateway)."""
+
+    TIMEOUT_SWITCH_OP_MODE = 2.0
+    TIMEOUT_SWITCH_STATE_FINAL = 2.0
+    TIMEOUT_SWITCH_STATE_SINGLE = 1.0
+    TIMEOUT_CHECK_TPDO = 0.2
+    TIMEOUT_HOMING_DEFAULT = 30
+    INTERVAL_CHECK_STATE = 0.005
+
+    def __init__(self, node_id: int, od: Any, client: EposClient,
+                 link_node: Optional[int] = None) -> None:
+        self._epos_client = client
+        self._link_node = link_node
+        BaseNode402.__init__(self, node_id, od)
+        self._attach_gateway()
+
+    # PDOs never arrive through the gateway, so values "from the last TPDO"
+    # would be stale forever: the state machine always uses SDO, and the
+    # "not configured in PDOs" warnings do not apply.
+    def _init_tpdo_values(self) -> None:
+        pass
+
+    def _init_rpdo_pointers(self) -> None:
+        pass
+
+    def _check_controlword_configured(self) -> None:
+        pass
+
+    def _check_statusword_configured(self) -> None:
+        pass
+
+    def _check_op_mode_configured(self) -> None:
+        pass
+
+    @property
+    def statusword(self) -> int:
+        return int(self.sdo[0x6041].raw)
+
+
+def default_eds() -> str:
+    """The simulator's EPOS4 EDS, the default object dictionary."""
+    from .simulator.od import EDS_PATH
+
+    return str(EDS_PATH)
+
+
+def connect_node(url: Union[str, EposClient], node_id: int,
+                 od: Union[str, ObjectDictionary, None] = None, *, profile: Optional[str] = None,
+                 gateway_node_id: Optional[int] = None, **client_options: Any) -> Any:
+    """A canopen node reached through the EPOS4 at ``url`` (any epos_link URL) or
+    through an open :class:`EposClient` shared by several nodes.
+
+    ``node_id`` 0 (or the EPOS4's own id) is the connected EPOS4 itself; any other
+    id is a node on its CAN bus. ``od`` is an EDS/DCF path or an ObjectDictionary;
+    by default the shipped EPOS4 EDS. ``profile="402"`` returns a ``BaseNode402``.
+    ``client_options`` go to :meth:`EposClient.open` (timeout, retries, baudrate, trace).
+    """
+    if profile not in (None, "402"):
+        raise ValueError(f"profile must be None or '402', got {profile!r}")
+    if not 0 <= node_id <= 127:
+        raise ValueError(f"node id must be 0..127, got {node_id}")
+    if isinstance(url, EposClient):
+        client = url
+        if gateway_node_id is not None:
+            client.gateway_node_id = gateway_node_id
+    else:
+        client = EposClient.open(url, gateway_node_id=gateway_node_id, **client_options)
+    try:
+        link_node: Optional[int] = None
+        canopen_id = node_id
+        if node_id == 0:
+            # canopen needs a real node id: ask the EPOS4 for its own (0x2000).
+            canopen_id = own_node_id(client)
+            client.gateway_node_id = canopen_id
+            link_node = 0
+        if od is None:
+            od = default_eds()
+        if isinstance(od, str):
+            from .simulator.od import add_value_descriptions
+
+            od = canopen.import_od(od, canopen_id)
+            add_value_descriptions(od)
+        cls = EposNode402 if profile == "402" else EposRemoteNode
+        return cls(canopen_id, od, client, link_node)
+    except Exception:
+        if not isinstance(url, EposClient):
+            client.close()
+        raise
+
+
+NODE_ID_OBJECT = 0x2000  # maxon EPOS4: Node-ID (DIP switch or software setting)
+
+
+def own_node_id(client: EposClient) -> int:
+    """The connected EPOS4's own CANopen node id, read from 0x2000 of node 0."""
+    try:
+        value = client.read_object(0, NODE_ID_OBJECT, 0)[0]
+    except DeviceError as exc:
+        raise SdoAbortedError(exc.code) from exc
+    except EposError as exc:
+        raise SdoCommunicationError(f"cannot read the EPOS4's node id: {exc}") from exc
+    if not 1 <= value <= 127:
+        raise SdoCommunicationError(f"the EPOS4 reports node id {value}, not 1..127")
+    return value
