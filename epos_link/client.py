@@ -43,7 +43,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from types import TracebackType
-from typing import Any, Callable, Iterable, Optional, Type, TypeVar, Union
+from typing import Any, Callable, Iterable, Optional, Type, TypeVar, Union, cast
 
 from .codes import MAX_SEGMENT, ErrorCode, NmtCommand, OpCode
 from .errors import (
@@ -57,7 +57,7 @@ from .errors import (
     TransportError,
     TruncatedFrameError,
 )
-from .framing import NEED_DATA, FrameDecoder
+from .framing import NEED_DATA, Frame, FrameDecoder
 from .messages import (
     ANSWER_TYPES,
     AnyAnswer,
@@ -217,11 +217,11 @@ class EposClient:
                 if data:
                     feed(data)
                 continue
-            if item.opcode != OpCode.ANSWER:  # type: ignore[union-attr]
+            got = cast(Frame, item)
+            if got.opcode != OpCode.ANSWER:
                 raise MessageFormatError(
-                    f"op code 0x{item.opcode:02X} where an answer (0x00) was expected",  # type: ignore[union-attr]
-                    item.data)  # type: ignore[union-attr]
-            return answer_type.from_payload(item.data)  # type: ignore[union-attr]
+                    f"op code 0x{got.opcode:02X} where an answer (0x00) was expected", got.data)
+            return answer_type.from_payload(got.data)
 
     def _call(self, op: Callable[[float], T], timeout: Optional[float], retries: Optional[int],
               retry_codes: frozenset[int] = _RETRY_CODES) -> T:
@@ -363,7 +363,7 @@ class EposClient:
         while request is not None:
             answer = self._exchange(request.encode(), ANSWER_TYPES[type(request)], timeout,
                                     type(request).__name__ + " " + machine.where())
-            request = machine.receive(answer)  # type: ignore[arg-type]
+            request = machine.receive(answer)
 
     # --- network ---------------------------------------------------------------
 
