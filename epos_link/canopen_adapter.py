@@ -27,7 +27,7 @@ from typing import Any, Callable, Optional, Union
 import canopen
 from canopen.nmt import NmtMaster
 from canopen.objectdictionary import ObjectDictionary
-from canopen.profiles.p402 import BaseNode402
+from canopen.profiles.p402 import BaseNode402, OperationMode
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from canopen.sdo.base import SdoBase
 
@@ -257,6 +257,14 @@ class EposNode402(_GatewayNodeMixin, BaseNode402):
     @property
     def statusword(self) -> int:
         return int(self.sdo[0x6041].raw)
+
+    @property
+    def op_mode(self) -> str:
+        return str(OperationMode.CODE2NAME[self.sdo[0x6061].raw])
+
+    @op_mode.setter
+    def op_mode(self, mode: str) -> None:
+        BaseNode402.op_mode.fset(self, mode)  # type: ignore[attr-defined]
 
 
 def default_eds() -> str:
