@@ -84,7 +84,7 @@ class Engine:
         self.debug = table.settings.debug
         self.job_timeout = job_timeout
         self.version = software_version()
-        self._backends = list(backends)
+        self.backends = list(backends)
         s = table.settings
         timing = Timing(s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay,
                         s.poll_interval)
@@ -238,7 +238,7 @@ class Engine:
         """Finish the transfers in flight (``wait``), then close the backends."""
         for executor in self._executors.values():
             executor.shutdown(wait=wait, cancel_futures=True)
-        for backend in self._backends:
+        for backend in self.backends:
             try:
                 backend.close()
             except Exception:  # closing one backend must not keep the others open

@@ -323,6 +323,7 @@ class AxisOps:
         port = self._port()
 
         def write_all() -> None:
+            port.read(STATUSWORD, 0)  # the drive is there, even with nothing to write
             for obj, raw in writes:
                 port.write(obj.index, obj.subindex, raw)
         return write_all

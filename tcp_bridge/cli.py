@@ -1,0 +1,190 @@
+"""``tcp-bridge``: serve the PSI gateway protocol, or send one request to a gateway.
+
+::
+
+    tcp-bridge serve --config axes.toml [--bind ADDR] [--port 1912] [--maintenance-port 1913]
+    tcp-bridge serve --simulate [--axes N]
+    tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
+
+Expected failures (a port in use, a bad axis table, an unreachable CAN
+adapter, a refused connection) print one line and exit with status 2;
+``send`` exits 0 when every reply is ACK, 1 otherwise.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import signal
+import socket
+import sys
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+from .axes import AxisTable, ConfigError, Settings, simulated_table
+from .errors import BridgeError, MalformedReply
+from .protocol import REPLY_SIZE, Reply, Status, decode_reply
+
+PROG = "tcp-bridge"
+
+
+def _fail(message: str) -> int:
+    print(f"{PROG}: {message}", file=sys.stderr)
+    return 2
+
+
+# --- serve ---------------------------------------------------------------------------
+
+
+def _table(args: argparse.Namespace) -> AxisTable:
+    if args.simulate:
+        options = {}
+        if args.sim_link:
+            options["link"] = args.sim_link
+        if args.sim_baud:
+            options["baud"] = args.sim_baud
+        table = simulated_table(args.axes, bus_options=options)
+    else:
+        table = AxisTable.load(args.config)
+    if args.state_file is not None or args.debug:
+        s = table.settings
+        table = AxisTable(table.axes, table.buses, Settings(
+            s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay, s.poll_interval,
+            s.debug or args.debug,
+            Path(args.state_file) if args.state_file else s.state_file))
+    return table
+
+
+async def _serve(args: argparse.Namespace) -> int:
+    from .engine import build_engine
+    from .server import BridgeServer, ServerOptions
+
+    table = _table(args)
+    engine = await asyncio.get_running_loop().run_in_executor(None, build_engine, table)
+    ports = [args.port] + ([args.maintenance_port] if args.maintenance_port >= 0 else [])
+    options = ServerOptions(host=args.bind, ports=ports, max_connections=args.max_connections,
+                            idle_timeout=args.idle_timeout)
+    server = BridgeServer(engine, options)
+    try:
+        await server.start()
+    except OSError as exc:
+        engine.close()
+        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        return _fail(f"cannot listen on {args.bind} port {'/'.join(map(str, ports))}: {why}")
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError):  # pragma: no cover - Windows
+            pass
+    names = ["NICOS/EPICS", "maintenance"]
+    where = ", ".join(f"{h}:{p} ({names[i] if i < 2 else 'extra'})"
+                      for i, (h, p) in enumerate(server.addresses))
+    axes = ", ".join(f"{a.addr}={a.bus}/{a.node_id}" for a in table.axes.values())
+    print(f"{PROG}: listening on {where}; axes {axes or '(none)'}", flush=True)
+    await stop.wait()
+    print(f"{PROG}: shutting down", flush=True)
+    await server.close()
+    return 0
+
+
+# --- send ----------------------------------------------------------------------------
+
+
+def describe(reply: Reply) -> str:
+    """``"1 R 10=567 ACK"``: the reply with its status spelled out."""
+    head = " ".join("?" if p is None else str(p) for p in (reply.axis, reply.kind, reply.cmd))
+    value = "" if reply.value is None else f"={reply.value}"
+    return f"{head}{value} {reply.status.name}"
+
+
+def _address(text: str) -> tuple:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ValueError(f"expected HOST:PORT, not {text!r}")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[Reply]:
+    """Send each request (CR appended) and decode its 30-byte reply."""
+    host, port = _address(address)
+    replies = []
+    with socket.create_connection((host, port), timeout=timeout) as sock:
+        for text in requests:
+            sock.sendall(text.encode("ascii") + b"\r")
+            data = b""
+            while len(data) < REPLY_SIZE:
+                chunk = sock.recv(REPLY_SIZE - len(data))
+                if not chunk:
+                    raise MalformedReply(f"connection closed after {len(data)} bytes of a reply")
+                data += chunk
+            replies.append(decode_reply(data))
+    return replies
+
+
+def _send(args: argparse.Namespace) -> int:
+    try:
+        requests = [r.strip() for r in args.request]
+        for r in requests:
+            r.encode("ascii")
+        replies = send(args.address, requests, args.timeout)
+    except (ValueError, UnicodeError) as exc:
+        return _fail(str(exc))
+    except (OSError, MalformedReply) as exc:
+        return _fail(f"{args.address}: {exc.strerror if isinstance(exc, OSError) and exc.strerror else exc}")
+    for reply in replies:
+        print(describe(reply))
+    return 0 if all(r.status is Status.ACK for r in replies) else 1
+
+
+# --- main ----------------------------------------------------------------------------
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("serve", help="serve the PSI gateway protocol (spec rev 2.3)")
+    src = s.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", metavar="FILE", help="axis table (TOML), see example_axes.toml")
+    src.add_argument("--simulate", action="store_true",
+                     help="simulated EPOS4 drives: axis 1 the EPOS4, the rest behind its gateway")
+    s.add_argument("--axes", type=int, default=1, metavar="N", help="with --simulate (default 1)")
+    s.add_argument("--sim-link", choices=["inprocess", "pty"], help=argparse.SUPPRESS)
+    s.add_argument("--sim-baud", type=int, help=argparse.SUPPRESS)
+    s.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
+                   help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
+    s.add_argument("--port", type=int, default=1912, help="NICOS/EPICS port (default 1912)")
+    s.add_argument("--maintenance-port", type=int, default=1913,
+                   help="maintenance port (default 1913; -1: none)")
+    s.add_argument("--max-connections", type=int, default=64)
+    s.add_argument("--idle-timeout", type=float, default=None, metavar="SECONDS")
+    s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
+    s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
+    s.add_argument("-v", "--verbose", action="store_true", help="log connections")
+    t = sub.add_parser("send", help="send requests to a gateway and print the replies")
+    t.add_argument("address", metavar="HOST:PORT")
+    t.add_argument("request", nargs="+", help='e.g. "1R10" or "3S02=12"')
+    t.add_argument("--timeout", type=float, default=10.0)
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = parser().parse_args(argv)
+    if args.command == "send":
+        return _send(args)
+    level = logging.INFO if args.verbose or args.debug else logging.WARNING
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
+    logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
+    logging.getLogger("tcp_bridge.sdo").setLevel(logging.INFO)
+    try:
+        return asyncio.run(_serve(args))
+    except (ConfigError, BridgeError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:  # a second Ctrl-C during shutdown
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

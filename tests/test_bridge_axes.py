@@ -1,0 +1,189 @@
+"""Tests of tcp_bridge.axes: the axis table (spec section 3) and the parameter array.
+
+Expected values are worked out by hand from spec 3 and 3.6 in the comments.
+"""
+from __future__ import annotations
+
+import json
+import os
+from importlib import resources
+from pathlib import Path
+from typing import Any, Dict
+
+import pytest
+
+from tcp_bridge.axes import (
+    DEFAULTS,
+    AxisTable,
+    BusOffset,
+    ConfigError,
+    DeviceCode,
+    ParameterStore,
+    simulated_table,
+    write_atomically,
+)
+
+EXAMPLE = Path(str(resources.files("tcp_bridge") / "example_axes.toml"))
+
+
+def table(**extra: Any) -> Dict[str, Any]:
+    data: Dict[str, Any] = {
+        "bus": {"can1": {"backend": "instant"}, "can2": {"backend": "instant"}},
+        "axis": [
+            {"device": 5, "node_id": 1, "position_factor": 1000,
+             "parameters": {"velocity": 2.5, "offset": 1.25, "26": 50}},
+            {"addr": 2, "device": "nanotec", "node_id": 3, "bus_offset": 100000},
+        ],
+    }
+    data.update(extra)
+    return data
+
+
+def test_example_file_loads_and_is_documented() -> None:
+    t = AxisTable.load(EXAMPLE)
+    assert sorted(t.axes) == [1, 2, 3]
+    assert t.axes[1].device is DeviceCode.C_DC_MAXON_EPOS4
+    assert t.axes[3].bus_offset is BusOffset.CAN2 and t.axes[3].bus == "can2"
+    assert t.axes[3].parameters == {22: -1, 25: 12.5, 40: 35}
+    assert t.buses["can1"].backend == "canopen" and t.buses["can2"].backend == "epos"
+    assert t.settings.state_file == EXAMPLE.parent / "tcp-bridge-state.json"
+    text = EXAMPLE.read_text()
+    for name in ("velocity", "slave_direction", "sdo_index", "C_DC_MAXON_EPOS4", "100000"):
+        assert name in text
+
+
+def test_epos4_device_code_is_5() -> None:
+    # Spec 3.5 stops at 4 (C_DC_COBLEY_CAN); 5 is this bridge's addition.
+    assert [int(c) for c in DeviceCode] == [0, 1, 2, 3, 4, 5]
+    assert DeviceCode.C_DC_MAXON_EPOS4 == 5
+
+
+def test_addr_defaults_to_position_and_parameters_by_name_or_number() -> None:
+    t = AxisTable.from_mapping(table())
+    a = t.axes[1]
+    assert (a.addr, a.node_id, a.position_factor, a.bus) == (1, 1, 1000, "can1")
+    assert a.parameters == {5: 2.5, 25: 1.25, 26: 50}
+    assert t.axes[2].device is DeviceCode.C_DC_NANOTEC
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"axis": [{"addr": 61, "node_id": 1}]}, "1..60"),
+    ({"axis": [{"node_id": 1}, {"addr": 1, "node_id": 2}]}, "twice"),
+    ({"axis": [{"node_id": 128}]}, "1..127"),
+    ({"axis": [{"node_id": 0}]}, "internal"),
+    ({"axis": [{"node_id": 1}, {"node_id": 1}]}, "share node"),
+    ({"axis": [{"node_id": 1, "bus_offset": 1000000}]}, "no [bus.ethercat]"),
+    ({"axis": [{"node_id": 1, "bus_offset": 5}]}, "BusOffset"),
+    ({"axis": [{"node_id": 1, "device": 9}]}, "DeviceCode"),
+    ({"axis": [{"node_id": 1, "device": "acme"}]}, "acme"),
+    ({"axis": [{"node_id": 1, "position_factor": 0}]}, "position_factor"),
+    ({"axis": [{"node_id": 1, "colour": "red"}]}, "colour"),
+    ({"axis": [{"node_id": 1, "parameters": {"speed": 1}}]}, "speed"),
+    ({"axis": [{"node_id": 1, "parameters": {"axis_inversion": 2}}]}, "axis_inversion"),
+    ({"axis": [{"node_id": 1, "parameters": {"velocity": "fast"}}]}, "number"),
+    ({"axis": [{"node_id": 1, "position_factor": 1000, "parameters": {"offset": 3e6}}]},
+     "INTEGER32"),
+    ({"axis": [{"node_id": 1, "parameters": {"slave_axis": 1}}]}, "slave"),
+    ({"axis": [{"node_id": 1}, {"node_id": 2, "internal": True}]}, "spec 3.2"),
+    ({"bridge": {"ack_timeout": 0}}, "ack_timeout"),
+    ({"bridge": {"colour": 1}}, "colour"),
+    ({"bus": {"can3": {"backend": "instant"}}}, "can3"),
+    ({"bus": {"can1": {"interface": "virtual"}}}, "backend"),
+    ({"extra": 1}, "extra"),
+])
+def test_invalid_tables_are_refused_with_a_reason(change: Dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace(".", r"\.")):
+        AxisTable.from_mapping(table(**change))
+
+
+def test_bad_toml_and_missing_file(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[axis]\n")
+    with pytest.raises(ConfigError, match="bad.toml"):
+        AxisTable.load(bad)
+    with pytest.raises(ConfigError, match="cannot read"):
+        AxisTable.load(tmp_path / "missing.toml")
+
+
+def test_internal_axes_first_and_node_zero() -> None:
+    # Spec 3 example: AxAddr 1 and 2 internal with node 0, then drives.
+    t = AxisTable.from_mapping(table(axis=[
+        {"internal": True}, {"internal": True}, {"device": 2, "node_id": 5}]))
+    assert [a.addr for a in t.internal_axes] == [1, 2]
+    assert not t.axes[1].has_node and t.axes[3].has_node
+
+
+def test_simulated_table() -> None:
+    t = simulated_table(3)
+    assert [(a.addr, a.node_id, a.position_factor, a.device) for a in t.axes.values()] == [
+        (1, 1, 1000, DeviceCode.C_DC_MAXON_EPOS4), (2, 2, 1000, DeviceCode.C_DC_MAXON_EPOS4),
+        (3, 3, 1000, DeviceCode.C_DC_MAXON_EPOS4)]
+    assert t.buses["can1"].backend == "sim"
+    with pytest.raises(ConfigError):
+        simulated_table(61)
+
+
+# --- the parameter array ----------------------------------------------------------
+
+
+def test_defaults_and_configured_values_in_stored_form() -> None:
+    store = ParameterStore(AxisTable.from_mapping(table()))
+    # velocity 2.5 mm/s at factor 1000 is stored as 2500 (spec 4 footnote)
+    assert store.get(1, 5) == 2500 and store.user(1, 5) == 2.5
+    assert store.get(1, 25) == 1250  # offset 1.25 -> 1250
+    assert store.get(1, 26) == 50000
+    assert store.get(1, 19) == 5  # device code from the axis
+    assert store.get(1, 22) == 1 and store.get(1, 31) == 3 and store.get(1, 80) == 0x60410002
+    assert store.get(1, 2) is None and DEFAULTS[2] is None  # the drive's own value stands
+    s = store.scaling(1)
+    assert (s.factor, s.inversion, s.offset) == (1000, 1, 1.25)
+    assert store.device(2) is DeviceCode.C_DC_NANOTEC
+
+
+def test_state_file_persists_s_commands_only(tmp_path: Path) -> None:
+    path = tmp_path / "state" / "bridge.json"
+    t = AxisTable.from_mapping(table())
+    store = ParameterStore(t, path)
+    assert not path.exists()  # nothing set yet
+    store.set_user(1, 22, -1)
+    store.set_user(1, 41, 0.5)  # homing velocity 0.5 mm/s -> 500
+    data = json.loads(path.read_text())
+    assert data["axes"] == {"1": {"position_factor": 1000, "parameters": {"22": -1, "41": 500}}}
+    again = ParameterStore(t, path)
+    assert again.get(1, 22) == -1 and again.get(1, 41) == 500
+    assert again.get(1, 5) == 2500  # from the table, not the state file
+    assert again.scaling(1).inversion == -1
+    assert [p.name for p in path.parent.iterdir()] == ["bridge.json"]  # no temporary left
+
+
+def test_state_file_of_another_factor_is_ignored(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    ParameterStore(AxisTable.from_mapping(table()), path).set_user(1, 25, 2.0)
+    changed = table()
+    changed["axis"][0]["position_factor"] = 100
+    store = ParameterStore(AxisTable.from_mapping(changed), path)
+    assert store.get(1, 25) == 125  # 1.25 at factor 100, the stored 2000 is not reused
+
+
+@pytest.mark.parametrize("content", ["{", "[]", '{"format": "x"}',
+                                     '{"format": "tcp-bridge-state", "version": 1, '
+                                     '"axes": {"1": {"position_factor": 1000, '
+                                     '"parameters": {"5": "fast"}}}}'])
+def test_damaged_state_file_is_refused(tmp_path: Path, content: str) -> None:
+    path = tmp_path / "s.json"
+    path.write_text(content)
+    with pytest.raises(ConfigError, match="damaged"):
+        ParameterStore(AxisTable.from_mapping(table()), path)
+
+
+def test_atomic_write_keeps_old_content_on_failure(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "f.json"
+    write_atomically(path, "old")
+
+    def broken_replace(src: str, dst: str) -> None:
+        raise OSError("disk full")
+    monkeypatch.setattr(os, "replace", broken_replace)
+    with pytest.raises(OSError):
+        write_atomically(path, "new")
+    assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.json"]

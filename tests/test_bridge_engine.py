@@ -1,0 +1,538 @@
+"""Tests of the command layer (tcp_bridge.engine, operations, sequences, sdo).
+
+The drives are the ``instant`` backend's fake CiA 402 nodes, whose SDO log shows
+exactly which transfers each request caused. Controlword values are from CiA
+402-2 6.4.1.3 (06h shutdown, 07h switch on, 0Fh enable operation, bit 4 new
+set-point, bit 5 change set immediately, bit 6 relative, bit 7 fault reset,
+bit 8 halt); expected drive values are worked out by hand from spec 3.6.
+"""
+from __future__ import annotations
+
+import asyncio
+import struct
+import time
+from typing import Any, Dict, List, Optional, Tuple
+
+import pytest
+
+from tcp_bridge.axes import AxisTable
+from tcp_bridge.backends.instant import FakeNode
+from tcp_bridge.commands import COMMANDS
+from tcp_bridge.engine import Engine, build_engine, software_version
+from tcp_bridge.errors import DeviceFailure, InvalidCommand
+from tcp_bridge.operations import detailed_error_from_code
+from tcp_bridge.protocol import Reply, Status, decode_reply, format_error_reply, parse_request
+from tcp_bridge.sequences import Cia402, State, Timing, decode_state
+
+FAST = {"ack_timeout": 0.2, "state_timeout": 0.2, "reset_timeout": 0.2, "reset_delay": 0.0,
+        "poll_interval": 0.0}
+
+
+def make(axes: Optional[List[Dict[str, Any]]] = None, **bus: Any) -> Tuple[Engine, Dict[int, FakeNode]]:
+    axes = axes if axes is not None else [
+        {"device": 5, "node_id": 1, "position_factor": 1000},
+        {"device": 5, "node_id": 2, "position_factor": 1000},
+    ]
+    t = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant", **bus}},
+                                "axis": axes})
+    engine = build_engine(t)
+    return engine, engine.backends[0].nodes
+
+
+def ask(engine: Engine, line: str) -> Reply:
+    """One request through the engine, with the server's exception-to-reply rule."""
+    request = None
+    try:
+        request = parse_request(line.encode())
+        raw = engine.execute_sync(request)
+    except Exception as exc:
+        raw = format_error_reply(exc, request)
+    return decode_reply(raw)
+
+
+def ok(engine: Engine, line: str) -> Optional[str]:
+    reply = ask(engine, line)
+    assert reply.status is Status.ACK, (line, reply)
+    return reply.value
+
+
+def downloads(node: FakeNode, index: Optional[int] = None) -> List[Tuple[int, int, int]]:
+    """(index, subindex, value) of every download, optionally of one object."""
+    out = []
+    for what, i, s, data in node.log:
+        if what == "download" and (index is None or i == index):
+            out.append((i, s, int.from_bytes(data, "little", signed=True)))
+    return out
+
+
+def controlwords(node: FakeNode) -> List[int]:
+    return [v & 0xFFFF for _, _, v in downloads(node, 0x6040)]
+
+
+def enabled(engine: Engine, nodes: Dict[int, FakeNode], axis: int = 1) -> FakeNode:
+    ok(engine, f"{axis}S04=1")
+    node = nodes[axis]
+    node.log.clear()
+    return node
+
+
+# --- rights and validation: nothing reaches a drive --------------------------------
+
+
+@pytest.mark.parametrize("number", sorted(n for n, c in COMMANDS.items() if not c.writable))
+def test_read_only_commands_refuse_a_write_without_sdo(number: int) -> None:
+    engine, nodes = make()
+    assert ask(engine, f"1S{number:02d}=1").status is Status.CAN
+    assert nodes[1].log == []
+
+
+@pytest.mark.parametrize("number", sorted(n for n, c in COMMANDS.items() if not c.readable))
+def test_write_only_commands_refuse_a_read_without_sdo(number: int) -> None:
+    engine, nodes = make()
+    assert ask(engine, f"1R{number:02d}").status is Status.CAN
+    assert nodes[1].log == []
+
+
+@pytest.mark.parametrize("line", [
+    "1S02=1x", "1S02=", "1S00=7", "1S00=1.5", "1S04=2", "1S07=2", "1S22=0", "1S05=0x10",
+    "1S02=9999999", "1S09=40000", "1S52=-1", "1S29=1", "1S29=7", "1S80=0x60410005",
+    "1S81=70000", "1S19=6", "1S86=2", "1S91=3", "7R10", "1R55", "1S90=1", "1R02=1",
+])
+def test_invalid_requests_answer_can_and_send_nothing(line: str) -> None:
+    engine, nodes = make()
+    reply = ask(engine, line)
+    assert reply.status is Status.CAN, reply
+    assert reply.axis == int(line[0])
+    assert all(n.log == [] for n in nodes.values())
+
+
+def test_s81_checks_the_selected_length() -> None:
+    engine, nodes = make()
+    ok(engine, "1S80=0x60FE0101")  # 60FEh/1, one byte
+    assert ask(engine, "1S81=256").status is Status.CAN
+    assert nodes[1].log == []
+
+
+# --- enable, disable, reset ----------------------------------------------------------
+
+
+def test_first_enable_resets_the_node_writes_parameters_then_enables() -> None:
+    engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 1000,
+                           "parameters": {"velocity": 2.0, "acceleration": 30.0}}])
+    node = nodes[1]
+    ok(engine, "1S05=2.5")  # stored and written at once: 2500 inc/s
+    node.values[(0x6081, 0)] = 1  # the drive "forgot" it (power cycle)
+    node.log.clear()
+    ok(engine, "1S04=1")
+    assert node.resets == 1  # NMT reset node (spec: "on enable after power cycle")
+    assert downloads(node, 0x6081) == [(0x6081, 0, 2500)]
+    assert downloads(node, 0x6083) == [(0x6083, 0, 30000)]
+    assert downloads(node, 0x6084) == [(0x6084, 0, 30000)]  # 06 also sets deceleration
+    assert controlwords(node) == [0x06, 0x07, 0x0F]  # CiA 402: shutdown, switch on, enable
+    assert decode_state(node.statusword) is State.OPERATION_ENABLED
+    assert ok(engine, "1R04") == "1"
+    node.log.clear()
+    ok(engine, "1S04=1")  # no power cycle since: no reset, nothing to do
+    assert node.resets == 1 and controlwords(node) == []
+
+
+def test_disable_is_shutdown_and_idempotent() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S04=0")
+    assert controlwords(node) == [0x06]
+    assert ok(engine, "1R04") == "0"
+    node.log.clear()
+    ok(engine, "1S04=0")
+    assert controlwords(node) == []
+
+
+def test_enable_leaves_quick_stop_first_and_refuses_a_fault() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    node.state = "QS"
+    ok(engine, "1S04=1")
+    assert controlwords(node) == [0x00, 0x06, 0x07, 0x0F]
+    node.inject_fault()
+    assert ask(engine, "1S04=1").status is Status.NAK
+
+
+def test_fault_reset_17_is_a_rising_edge_and_never_an_nmt_reset() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    node.inject_fault(0x8611)
+    assert ok(engine, "1R84") == "1"
+    assert ok(engine, "1R18") == str(0x81)  # 1001h: generic + manufacturer
+    assert ok(engine, "1R11") == str(1 << 3)  # following error (spec 4.b bit 3)
+    node.log.clear()
+    resets = node.resets  # 1: the first enable
+    ok(engine, "1S17=1")
+    assert controlwords(node) == [0x00, 0x80, 0x00]
+    assert node.resets == resets
+    assert ok(engine, "1R84") == "0" and ok(engine, "1R18") == "0"
+    ok(engine, "1S04=1")  # enable again without a node reset
+    assert node.resets == resets
+
+
+def test_fault_reset_leaves_a_healthy_drive_alone() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S17=1")
+    assert controlwords(node) == []
+    assert ok(engine, "1R04") == "1"
+
+
+def test_reset_node_16_is_nmt_only_and_rearms_the_power_cycle_path() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    assert node.resets == 1  # the first enable
+    ok(engine, "1S16=1")
+    assert node.resets == 2 and [e for e in node.log if e[0] == "download"] == []
+    ok(engine, "1S04=1")
+    assert node.resets == 3  # the enable after it resets and writes the parameters again
+
+
+# --- moves --------------------------------------------------------------------------
+
+
+def test_absolute_move_with_set_point_handshake() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S02=12.5")
+    assert downloads(node, 0x607A) == [(0x607A, 0, 12500)]
+    ok(engine, "1S00=1")
+    # bit 4 low (2Fh = enable + change set immediately), rising (3Fh), released (2Fh)
+    assert controlwords(node) == [0x2F, 0x3F, 0x2F]
+    assert ok(engine, "1R82") == "1"
+    assert ok(engine, "1R12") == "12.5"
+    assert ok(engine, "1R86") == "1"
+
+
+def test_relative_move_uses_bit_6_and_no_offset() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S25=100")  # an offset never applies to a distance
+    ok(engine, "1S02=-1.5")
+    node.log.clear()
+    ok(engine, "1S00=2")
+    assert downloads(node, 0x607A) == [(0x607A, 0, -1500)]
+    assert controlwords(node) == [0x6F, 0x7F, 0x6F]
+
+
+def test_offset_and_inversion_on_target_and_position() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S22=-1")
+    ok(engine, "1S25=1.25")
+    node.log.clear()
+    ok(engine, "1S02=10")
+    # round((10 - 1.25) * 1000) * -1 = -8750 (spec 3.6 with offset and inversion)
+    assert downloads(node, 0x607A) == [(0x607A, 0, -8750)]
+    ok(engine, "1S00=1")
+    assert node.values[(0x6064, 0)] == -8750
+    assert ok(engine, "1R12") == "10"
+    assert ok(engine, "1R61") == "-8750"  # encoder position in system units
+    assert ok(engine, "1R02") == "10"
+
+
+def test_display_limits_swap_on_an_inverted_axis() -> None:
+    engine, nodes = make()
+    node = nodes[1]
+    node.values[(0x607D, 1)] = -5000
+    node.values[(0x607D, 2)] = 20000
+    assert (ok(engine, "1R33"), ok(engine, "1R34")) == ("20", "-5")
+    assert (ok(engine, "1R23"), ok(engine, "1R24")) == ("20", "-5")
+    ok(engine, "1S22=-1")
+    ok(engine, "1S25=1")
+    # positive display limit from 607Dh/1: -5000 * -1 / 1000 + 1 = 6
+    assert (ok(engine, "1R33"), ok(engine, "1R34")) == ("6", "-19")
+
+
+def test_velocity_move_stop_and_82_in_velocity_mode() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S05=-2")  # signed: the direction of a velocity move
+    assert downloads(node, 0x6081) == [(0x6081, 0, 2000)]  # 6081h is UNSIGNED32
+    assert ok(engine, "1R05") == "-2"
+    node.log.clear()
+    ok(engine, "1S00=3")
+    assert downloads(node, 0x60FF) == [(0x60FF, 0, -2000)]
+    assert downloads(node, 0x6060) == [(0x6060, 0, 3)]
+    assert ok(engine, "1R82") == "0"  # moving at constant speed: bit 10 alone would say 1
+    node.log.clear()
+    ok(engine, "1S00=8")
+    assert controlwords(node) == [0x10F]  # halt
+    assert ok(engine, "1R82") == "1"
+    assert ok(engine, "1R04") == "1"  # halt keeps the drive enabled
+
+
+def test_next_move_after_stop_releases_halt_only_after_the_set_point() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S02=1")
+    ok(engine, "1S00=8")
+    node.log.clear()
+    ok(engine, "1S00=1")
+    assert controlwords(node) == [0x12F, 0x13F, 0x2F]
+
+
+def test_homing_mode_6_and_bit_4() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    node.values[(0x6064, 0)] = 777
+    ok(engine, "1S00=9")
+    assert downloads(node, 0x6060) == [(0x6060, 0, 6)]
+    assert controlwords(node) == [0x0F, 0x1F]
+    assert ok(engine, "1R12") == "0" and ok(engine, "1R82") == "1"
+    assert ok(engine, "1R15") == "6"
+
+
+def test_move_needs_an_enabled_drive_and_a_target() -> None:
+    engine, nodes = make()
+    assert ask(engine, "1S00=1").status is Status.CAN  # no S02 yet: nothing to move to
+    ok(engine, "1S02=1")
+    assert ask(engine, "1S00=1").status is Status.NAK  # not enabled
+    assert ok(engine, "1R86") == "0"
+
+
+def test_moving_acknowledgement_86() -> None:
+    engine, nodes = make()
+    enabled(engine, nodes)
+    ok(engine, "1S86=0")
+    assert ok(engine, "1R86") == "0"
+    ok(engine, "1S02=3")
+    ok(engine, "1S00=1")
+    assert ok(engine, "1R86") == "1"
+
+
+class NoAckNode(FakeNode):
+    """A drive that never acknowledges a set-point."""
+
+    @property
+    def statusword(self) -> int:
+        return FakeNode.statusword.fget(self) & ~0x1000  # type: ignore[attr-defined]
+
+
+def test_unacknowledged_set_point_is_nak_within_the_bound() -> None:
+    engine, nodes = make()
+    node = NoAckNode(1)
+    engine.axes[1].port.node = node  # type: ignore[union-attr]
+    ok(engine, "1S04=1")
+    ok(engine, "1S02=1")
+    start = time.monotonic()
+    assert ask(engine, "1S00=1").status is Status.NAK
+    assert time.monotonic() - start < 1.0  # ack_timeout is 0.2 s here
+    assert ok(engine, "1R86") == "0"  # never accepted
+
+
+def test_slave_axis_follows_with_its_direction() -> None:
+    engine, nodes = make()
+    enabled(engine, nodes, 1)
+    slave = enabled(engine, nodes, 2)
+    ok(engine, "1S29=2")
+    ok(engine, "1S30=-1")
+    ok(engine, "1S02=4")
+    ok(engine, "1S00=1")
+    assert downloads(slave, 0x607A) == [(0x607A, 0, -4000)]
+    assert ok(engine, "2R12") == "-4" and ok(engine, "1R12") == "4"
+    ok(engine, "1S05=1")
+    ok(engine, "1S00=3")
+    assert slave.values[(0x60FF, 0)] == -1000
+    ok(engine, "1S00=8")
+    assert slave.values[(0x6040, 0)] & 0x100
+
+
+def test_combined_move_90_moves_internal_axes() -> None:
+    engine, nodes = make([
+        {"internal": True, "node_id": 1, "position_factor": 10},
+        {"internal": True, "node_id": 2, "position_factor": 10},
+        {"node_id": 3},
+    ])
+    for axis in (1, 2):
+        enabled(engine, nodes, axis)
+        ok(engine, f"{axis}S02={axis}")
+    ok(engine, "3S90=1")  # LINR: each internal axis moves by its own 02
+    assert (ok(engine, "1R12"), ok(engine, "2R12")) == ("1", "2")
+    ok(engine, "1S90=1")
+    assert (ok(engine, "1R12"), ok(engine, "2R12")) == ("2", "4")
+    ok(engine, "1S90=2")  # LINA to zero
+    assert (ok(engine, "1R12"), ok(engine, "2R12")) == ("0", "0")
+    ok(engine, "1S90=0")
+    assert nodes[3].log == []
+
+
+# --- reads, parameters, raw access ------------------------------------------------------
+
+
+def test_statusword_bits_82_83_84() -> None:
+    engine, nodes = make()
+    nodes[1].values[(0x6040, 0)] = 0  # statusword 0x0640: bits 6, 9, 10
+    assert ok(engine, "1R10") == str(0x0640)
+    assert [ok(engine, f"1R{c}") for c in (82, 83, 84)] == ["1", "0", "0"]
+
+
+def test_nanotec_position_reads_6062() -> None:
+    engine, nodes = make([{"device": 1, "node_id": 1}])
+    nodes[1].values[(0x6062, 0)] = 42
+    nodes[1].values[(0x6064, 0)] = 7
+    assert ok(engine, "1R12") == "42"
+    assert ok(engine, "1R61") == "7"
+
+
+def test_max_velocity_26_is_internal_for_technosoft() -> None:
+    engine, nodes = make([{"device": 2, "node_id": 1, "position_factor": 10},
+                          {"device": 5, "node_id": 2, "position_factor": 10}])
+    ok(engine, "1S26=5")
+    ok(engine, "2S26=5")
+    assert downloads(nodes[1]) == [] and downloads(nodes[2]) == [(0x607F, 0, 50)]
+    assert ok(engine, "1R26") == "5"
+
+
+def test_parameters_85_write_all() -> None:
+    engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 10,
+                           "parameters": {"max_velocity": 3, "homing_mode": 35,
+                                          "quickstop_accel": 7}}])
+    ok(engine, "1S85=1")
+    assert sorted(downloads(nodes[1])) == [(0x607F, 0, 30), (0x6085, 0, 70), (0x6098, 0, 35)]
+
+
+def test_raw_sdo_80_81() -> None:
+    engine, nodes = make()
+    assert ok(engine, "1R80") == "0x60410002"
+    ok(engine, "1S80=0x60810004")
+    assert ok(engine, "1R80") == "0x60810004"
+    ok(engine, "1S81=1234")
+    assert nodes[1].values[(0x6081, 0)] == 1234
+    assert ok(engine, "1R81") == "1234"
+    ok(engine, "1S80=0x607A0004")
+    ok(engine, "1S81=-5")
+    assert ok(engine, "1R81") == "-5"  # 607Ah is INTEGER32
+    ok(engine, "1S80=0x12340001")
+    assert ask(engine, "1R81").status is Status.NAK  # abort 06020000h: no such object
+
+
+def test_parameter_kept_only_when_the_drive_took_it() -> None:
+    engine, nodes = make()
+    nodes[1].values.pop((0x6083, 0))  # the object is gone: abort
+    assert ask(engine, "1S06=5").status is Status.NAK
+    assert engine.params.get(1, 6) is None
+
+
+def test_internal_parameters_and_globals() -> None:
+    engine, nodes = make()
+    assert ok(engine, "1R31") == "3" and ok(engine, "1R32") == "0"
+    ok(engine, "1S54=20")
+    ok(engine, "1S19=5")
+    assert ok(engine, "1R54") == "20" and ok(engine, "1R19") == "5"
+    assert ok(engine, "1R99") == software_version() == ok(engine, "59R99")
+    assert ok(engine, "1R91") == "0"
+    ok(engine, "1S91=1")
+    assert ok(engine, "2R91") == "1" and engine.debug
+    assert all(n.log == [] for n in nodes.values())
+
+
+def test_detailed_error_register() -> None:
+    assert detailed_error_from_code(0x8A89, 0x2) == 1 << 6  # positive limit switch
+    assert detailed_error_from_code(0x8A88, 0) == 1 << 7
+    assert detailed_error_from_code(0x2320, 0) == 1 << 1  # short circuit
+    assert detailed_error_from_code(0x3210, 0) == 1 << 12  # over-voltage
+    assert detailed_error_from_code(0x3220, 0) == 1 << 13  # under-voltage
+    assert detailed_error_from_code(0x4310, 0) == 1 << 11
+    assert detailed_error_from_code(0x8130, 0) == 1 << 4
+    assert detailed_error_from_code(0, 0) == 0
+    engine, nodes = make([{"device": 2, "node_id": 1}])
+    nodes[1].values[(0x2000, 0)] = (1 << 8) | (1 << 13)  # Technosoft MER: over-current, UV
+    assert ok(engine, "1R11") == str((1 << 10) | (1 << 13))
+
+
+# --- absent nodes ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("line", ["1R10", "1R12", "1S04=1", "1S02=1", "1R02", "1S17=1",
+                                  "1S00=8", "1R11", "1S85=1", "1R81"])
+def test_absent_node_answers_nak(line: str) -> None:
+    engine, nodes = make(absent=[1])
+    start = time.monotonic()
+    assert ask(engine, line).status is Status.NAK
+    assert time.monotonic() - start < 1.0
+
+
+def test_node_that_went_away_gets_the_power_cycle_path_again() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    assert node.resets == 1
+    node.absent = True
+    assert ask(engine, "1R10").status is Status.NAK
+    node.absent = False
+    ok(engine, "1S04=1")
+    assert node.resets == 2
+
+
+# --- state machine helpers -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("statusword,state", [
+    (0x0000, State.NOT_READY_TO_SWITCH_ON), (0x0250, State.SWITCH_ON_DISABLED),
+    (0x0231, State.READY_TO_SWITCH_ON), (0x0233, State.SWITCHED_ON),
+    (0x1637, State.OPERATION_ENABLED), (0x0217, State.QUICK_STOP_ACTIVE),
+    (0x021F, State.FAULT_REACTION_ACTIVE), (0x0218, State.FAULT),
+])
+def test_decode_state(statusword: int, state: State) -> None:
+    # CiA 402-2 6.4.1.4 state coding; bit 4 voltage enabled and bit 9 remote are ignored.
+    assert decode_state(statusword) is state
+
+
+def test_wait_status_is_bounded_by_the_clock() -> None:
+    now = [0.0]
+
+    def sleep(dt: float) -> None:
+        now[0] += 0.01
+
+    class Port:
+        name = "p"
+
+        def read(self, index: int, sub: int) -> int:
+            return 0x0250
+
+    drive = Cia402(Port(), Timing(), clock=lambda: now[0], sleep=sleep)  # type: ignore[arg-type]
+    with pytest.raises(DeviceFailure, match="within 0.5 s"):
+        drive.wait_status(lambda sw: False, 0.5, "never")
+    assert 0.5 <= now[0] < 0.6
+
+
+# --- execution: buses serialised, parallel, loop never blocked -------------------------------
+
+
+class SlowNode(FakeNode):
+    def upload(self, index: int, subindex: int) -> bytes:
+        time.sleep(0.2)
+        return super().upload(index, subindex)
+
+
+def test_one_bus_is_serialised_buses_run_in_parallel() -> None:
+    t = AxisTable.from_mapping({
+        "bridge": FAST,
+        "bus": {"can1": {"backend": "instant"}, "can2": {"backend": "instant"}},
+        "axis": [{"node_id": 1}, {"node_id": 2}, {"node_id": 1, "bus_offset": 100000}],
+    })
+    engine = Engine(t, {1: SlowNode(1), 2: SlowNode(2), 3: SlowNode(1)})
+
+    async def timed(*lines: str) -> float:
+        start = time.monotonic()
+        await asyncio.gather(*(engine.execute(parse_request(l.encode())) for l in lines))
+        return time.monotonic() - start
+
+    async def scenario() -> Tuple[float, float, float]:
+        same = await timed("1R10", "2R10")  # one bus: 2 x 0.2 s
+        other = await timed("1R10", "3R10")  # two buses: 0.2 s
+        start = time.monotonic()
+        slow = asyncio.ensure_future(engine.execute(parse_request(b"1R10")))
+        await asyncio.sleep(0.01)
+        await engine.execute(parse_request(b"1R99"))  # answered while the bus is busy
+        inline = time.monotonic() - start
+        await slow
+        return same, other, inline
+
+    same, other, inline = asyncio.run(scenario())
+    engine.close()
+    assert same >= 0.39 and other < 0.35 and inline < 0.1
