@@ -41,7 +41,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from types import TracebackType
 from typing import Any, Callable, Iterable, Optional, Type, TypeVar, Union, cast
 
@@ -94,6 +94,19 @@ NMT_COMMANDS: dict[str, NmtCommand] = {
 }
 # A reset may stop the device before it answers; sending it twice would reset twice.
 _NO_RETRY_NMT = frozenset({NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION})
+
+
+@dataclass
+class ClientStats:
+    """What the link cost: calls made, retries spent, and the errors that caused them."""
+
+    calls: int = 0
+    retries: int = 0
+    failures: dict[str, int] = field(default_factory=dict)  # error type name -> count
+
+    def failed(self, exc: BaseException) -> None:
+        name = type(exc).__name__
+        self.failures[name] = self.failures.get(name, 0) + 1
 
 
 @dataclass(frozen=True)
@@ -151,6 +164,7 @@ class EposClient:
         self._lock = threading.Lock()
         self._decoder = FrameDecoder()
         self._needs_reopen = False
+        self.stats = ClientStats()
         # Encoded ReadObject frames and their names: the hot path encodes nothing.
         self._read_frames: dict[tuple[int, int, int], tuple[bytes, str]] = {}
 
@@ -230,8 +244,12 @@ class EposClient:
         attempts = 1 + (self.retries if retries is None else retries)
         with self._lock:
             last: Optional[BaseException] = None
+            self.stats.calls += 1
             for attempt in range(attempts):
                 if attempt:
+                    assert last is not None
+                    self.stats.retries += 1
+                    self.stats.failed(last)
                     _log.debug("retry %d/%d after %s", attempt, attempts - 1, last)
                 try:
                     if self._needs_reopen:
@@ -247,6 +265,7 @@ class EposClient:
                         raise
                     last = exc
             assert last is not None
+            self.stats.failed(last)
             raise last
 
     def _reopen(self) -> None:
