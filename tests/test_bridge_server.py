@@ -1,0 +1,371 @@
+"""Tests of tcp_bridge.server and the CLI over real loopback TCP, instant fake drives.
+
+Replies are named as in spec 2.2.2 / 2.3.2: the echoed header, then ACK (06h),
+NAK (15h) or CAN (18h), CR, NUL padding to 30 bytes.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Dict, Iterator, List, Optional, Tuple
+
+import pytest
+
+from tcp_bridge import cli
+from tcp_bridge.axes import AxisTable
+from tcp_bridge.backends.instant import FakeNode
+from tcp_bridge.engine import Engine, build_engine
+from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.server import BridgeServer, ServerOptions
+
+FAST = {"ack_timeout": 0.5, "state_timeout": 0.5, "reset_timeout": 0.5, "reset_delay": 0.0,
+        "poll_interval": 0.0}
+
+
+def named(text: str, status: Status) -> bytes:
+    """A reply written out by hand: header text, status byte, CR, NUL padding."""
+    return (text.encode() + bytes((status, 0x0D))).ljust(REPLY_SIZE, b"\0")
+
+
+class Running:
+    """A BridgeServer on its own event loop thread, on free ports."""
+
+    def __init__(self, engine: Engine, **options: Any) -> None:
+        self.engine = engine
+        self.loop = asyncio.new_event_loop()
+        opts = ServerOptions(ports=(0, 0), **options)
+        self.server = BridgeServer(engine, opts)
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.call(self.server.start())
+        self.addresses = self.server.addresses
+
+    def call(self, coro: Any, timeout: float = 10.0) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def connect(self, which: int = 0) -> socket.socket:
+        sock = socket.create_connection(self.addresses[which], timeout=5)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
+
+    def stop(self) -> None:
+        if not self.server._closed.is_set():
+            self.call(self.server.close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+
+
+def make_engine(**bus: Any) -> Engine:
+    table = AxisTable.from_mapping({
+        "bridge": FAST, "bus": {"can1": {"backend": "instant", **bus}},
+        "axis": [{"device": 5, "node_id": n, "position_factor": 1000} for n in (1, 2, 3)]})
+    return build_engine(table)
+
+
+def nodes_of(engine: Engine) -> Dict[int, FakeNode]:
+    return engine.backends[0].nodes
+
+
+@pytest.fixture
+def running() -> Iterator[Running]:
+    r = Running(make_engine())
+    yield r
+    r.stop()
+
+
+def recv_replies(sock: socket.socket, count: int) -> List[bytes]:
+    data = b""
+    while len(data) < count * REPLY_SIZE:
+        chunk = sock.recv(65536)
+        assert chunk, f"connection closed after {len(data)} bytes"
+        data += chunk
+    assert len(data) == count * REPLY_SIZE
+    return [data[i:i + REPLY_SIZE] for i in range(0, len(data), REPLY_SIZE)]
+
+
+def exchange(sock: socket.socket, *lines: bytes) -> List[bytes]:
+    sock.sendall(b"".join(line + b"\r" for line in lines))
+    return recv_replies(sock, len(lines))
+
+
+# --- replies ---------------------------------------------------------------------------
+
+
+def test_spec_examples_on_both_ports(running: Running) -> None:
+    for which in (0, 1):  # 1912 and 1913 serve the same commands
+        with running.connect(which) as s:
+            assert exchange(s, b"3S02=12") == [named("3 S 2", Status.ACK)]  # spec 2.2.2
+            assert exchange(s, b"3S10=1") == [named("3 S 10", Status.CAN)]  # status not writable
+            assert exchange(s, b"3R00") == [named("3 R 0", Status.CAN)]  # move not readable
+            assert exchange(s, b"3R02") == [named("3 R 2=12", Status.ACK)]
+
+
+def test_replies_in_request_order_when_pipelined(running: Running) -> None:
+    lines = [b"1S04=1"] + [b"1S02=%d" % i if i % 2 else b"1R02" for i in range(1, 60)]
+    with running.connect() as s:
+        replies = [decode_reply(r) for r in exchange(s, *lines)]
+    assert [r.status for r in replies] == [Status.ACK] * len(lines)
+    assert [r.cmd for r in replies] == [4] + [2] * 59
+    # every read returns the value written just before it, in order
+    values = [r.value for r in replies[2::2]]
+    assert values == [str(i) for i in range(1, 59, 2)]
+
+
+@pytest.mark.parametrize("raw,expected", [
+    (b"\xff\xfe\x00garbage", named("? ? ?", Status.CAN)),
+    (b"7R10", named("7 R 10", Status.CAN)),  # axis not configured
+    (b"61R10", named("61 R 10", Status.CAN)),  # beyond 60 axes (spec 3)
+    (b"1R55", named("1 R 55", Status.CAN)),  # no such command
+    (b"1X10", named("1 ? ?", Status.CAN)),
+    (b"1S02=1x", named("1 S 2", Status.CAN)),
+    (b"1S02=", named("1 S 2", Status.CAN)),
+    (b"1S00=7", named("1 S 0", Status.CAN)),
+    (b"1 R 10", named("1 ? ?", Status.CAN)),
+])
+def test_bad_input_is_answered_can_and_sends_nothing(running: Running, raw: bytes, expected: bytes) -> None:
+    with running.connect() as s:
+        assert exchange(s, raw) == [expected]
+        assert exchange(s, b"1R99")[0].startswith(b"1 R 99=")  # still serving
+    assert all(n.log == [] for n in nodes_of(running.engine).values())
+
+
+def test_overlong_line_one_can_then_serving(running: Running) -> None:
+    with running.connect() as s:
+        s.sendall(b"1S02=" + b"1" * 5000 + b"\r1R99\r")
+        first, second = recv_replies(s, 2)
+        assert first == named("1 S 2", Status.CAN)
+        assert second.startswith(b"1 R 99=")
+    assert all(n.log == [] for n in nodes_of(running.engine).values())
+
+
+def test_half_request_then_disconnect(running: Running) -> None:
+    with running.connect() as s:
+        s.sendall(b"1S04=")
+    with running.connect() as s:
+        s.sendall(b"1S0")
+        s.shutdown(socket.SHUT_WR)
+        assert s.recv(100) == b""  # nothing answered, connection closed
+    with running.connect() as s:
+        assert exchange(s, b"1R86") == [named("1 R 86=0", Status.ACK)]
+    assert all(n.log == [] for n in nodes_of(running.engine).values())
+
+
+def test_unexpected_error_is_nak_and_connection_survives(running: Running) -> None:
+    node = nodes_of(running.engine)[1]
+
+    def broken(index: int, subindex: int) -> bytes:
+        raise RuntimeError("a bug")
+    node.upload = broken  # type: ignore[method-assign]
+    with running.connect() as s:
+        assert exchange(s, b"1R10", b"2R82") == [named("1 R 10", Status.NAK),
+                                                  named("2 R 82=1", Status.ACK)]
+
+
+def test_absent_node_nak_without_hanging() -> None:
+    r = Running(make_engine(absent=[2]))
+    try:
+        with r.connect() as s:
+            start = time.monotonic()
+            assert exchange(s, b"2R10", b"2S04=1", b"2S02=1", b"1R82") == [
+                named("2 R 10", Status.NAK), named("2 S 4", Status.NAK),
+                named("2 S 2", Status.NAK), named("1 R 82=1", Status.ACK)]
+            assert time.monotonic() - start < 2
+    finally:
+        r.stop()
+
+
+def test_malformed_flood_does_not_disturb_another_clients_moves(running: Running) -> None:
+    junk = [b"2S02=1x", b"\x00\x01\x02", b"2R", b"99R10", b"2S00=7", b"2S" + b"9" * 200,
+            b"2S05=", b"2S04=3", b"x"]
+    flood = [junk[i % len(junk)] for i in range(1000)]
+    results: Dict[str, Any] = {}
+
+    def flooder() -> None:
+        with running.connect(1) as s:
+            s.sendall(b"".join(line + b"\r" for line in flood))
+            replies = recv_replies(s, 1000)
+            results["flood"] = [decode_reply(r).status for r in replies]
+
+    def mover() -> None:
+        got = []
+        with running.connect(0) as s:
+            got += exchange(s, b"1S04=1", b"1S05=5", b"1S06=50")
+            for target in (3, -2, 7):
+                got += exchange(s, b"1S02=%d" % target, b"1S00=1")
+                while decode_reply(exchange(s, b"1R82")[0]).value != "1":
+                    pass
+                got += exchange(s, b"1R12")
+        results["moves"] = [decode_reply(r) for r in got]
+
+    threads = [threading.Thread(target=flooder), threading.Thread(target=mover)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert results["flood"] == [Status.CAN] * 1000
+    moves = results["moves"]
+    assert all(r.status is Status.ACK for r in moves)
+    assert [r.value for r in moves if r.cmd == 12] == ["3", "-2", "7"]
+    assert nodes_of(running.engine)[2].log == []  # no SDO from any malformed request
+
+
+def test_many_clients_each_get_their_own_replies_in_order(running: Running) -> None:
+    errors: List[str] = []
+
+    def client(axis: int) -> None:
+        with running.connect() as s:
+            for i in range(30):
+                a, b = exchange(s, b"%dS02=%d" % (axis, i), b"%dR02" % axis)
+                if a != named(f"{axis} S 2", Status.ACK) or decode_reply(b).value != str(i):
+                    errors.append(f"axis {axis} step {i}: {a!r} {b!r}")
+
+    threads = [threading.Thread(target=client, args=(1 + n % 3,)) for n in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert errors == []
+
+
+def test_connection_limit() -> None:
+    r = Running(make_engine(), max_connections=2)
+    try:
+        a, b = r.connect(), r.connect()
+        assert exchange(a, b"1R86") and exchange(b, b"1R86")
+        with r.connect() as c:
+            c.settimeout(2)
+            assert c.recv(100) == b""  # refused: closed at once, unanswered
+        a.close()
+        time.sleep(0.1)
+        with r.connect() as d:
+            assert exchange(d, b"1R86") == [named("1 R 86=0", Status.ACK)]
+        b.close()
+    finally:
+        r.stop()
+
+
+def test_idle_timeout() -> None:
+    r = Running(make_engine(), idle_timeout=0.2)
+    try:
+        with r.connect() as s:
+            assert exchange(s, b"1R86")
+            s.settimeout(3)
+            start = time.monotonic()
+            assert s.recv(100) == b""
+            assert 0.15 < time.monotonic() - start < 2
+    finally:
+        r.stop()
+
+
+class SlowNode(FakeNode):
+    def upload(self, index: int, subindex: int) -> bytes:
+        time.sleep(0.3)
+        return super().upload(index, subindex)
+
+
+def test_close_finishes_the_request_in_flight() -> None:
+    table = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant"}},
+                                    "axis": [{"node_id": 1}]})
+    r = Running(Engine(table, {1: SlowNode(1)}))
+    try:
+        busy, idle = r.connect(), r.connect()
+        busy.sendall(b"1R10\r")
+        time.sleep(0.1)  # the SDO is in flight
+        r.call(r.server.close())
+        assert recv_replies(busy, 1) == [named("1 R 10=1600", Status.ACK)]  # 0640h: switch on disabled
+        assert busy.recv(100) == b"" and idle.recv(100) == b""
+        with pytest.raises(OSError):
+            r.connect()
+        busy.close()
+        idle.close()
+    finally:
+        r.stop()
+
+
+def test_debug_print_91_logs_requests_replies_and_sdo(running: Running,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.INFO):
+        with running.connect() as s:
+            exchange(s, b"1S91=1", b"1R10", b"1S91=0", b"1R10")
+    text = caplog.text
+    assert "b'1R10'" in text and "1 R 10=" in text
+    assert "SDO upload 0x6041/0" in text
+    assert text.count("SDO upload") == 1  # the second R10 ran with debug off
+
+
+# --- CLI ------------------------------------------------------------------------------------
+
+
+def test_cli_send_prints_decoded_replies(running: Running, capsys: pytest.CaptureFixture[str]) -> None:
+    host, port = running.addresses[0]
+    assert cli.main(["send", f"{host}:{port}", "1R99", "1R82"]) == 0
+    assert cli.main(["send", f"{host}:{port}", "1S10=1"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("1 R 99=2.3-py") and out[0].endswith(" ACK")
+    assert out[1:] == ["1 R 82=1 ACK", "1 S 10 CAN"]
+
+
+def test_cli_send_connection_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert cli.main(["send", f"127.0.0.1:{port}", "1R10"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tcp-bridge: ") and "Traceback" not in err
+
+
+def write_config(tmp_path: Path) -> Path:
+    path = tmp_path / "axes.toml"
+    path.write_text('[bus.can1]\nbackend = "instant"\n[[axis]]\nnode_id = 1\n'
+                    'position_factor = 1000\n[bridge]\nstate_file = "state.json"\n')
+    return path
+
+
+def serve(args: List[str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "tcp_bridge.cli", "serve", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_cli_serve_prints_where_it_listens_and_stops_on_sigterm(tmp_path: Path) -> None:
+    proc = serve(["--config", str(write_config(tmp_path)), "--port", "0",
+                  "--maintenance-port", "0"])
+    try:
+        line = proc.stdout.readline()  # type: ignore[union-attr]
+        assert "listening on 127.0.0.1:" in line and "(NICOS/EPICS)" in line
+        port = int(line.split("127.0.0.1:")[1].split()[0])
+        assert cli.send(f"127.0.0.1:{port}", ["1S22=-1"])[0].status is Status.ACK
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert '"22": -1' in (tmp_path / "state.json").read_text()  # the S command persisted
+
+
+def test_cli_serve_port_in_use_is_one_line(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        proc = serve(["--config", str(write_config(tmp_path)), "--port", str(port),
+                      "--maintenance-port", "-1"])
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2
+    assert err.strip() == f"tcp-bridge: cannot listen on 127.0.0.1 port {port}: Address already in use"
+
+
+def test_cli_serve_bad_config_is_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[axis]]\nnode_id = 200\n")
+    proc = serve(["--config", str(bad)])
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2 and "Traceback" not in err and "1..127" in err
