@@ -332,6 +332,7 @@ class AxisOps:
         """04 = 1: after a power cycle NMT reset and write the parameters first (spec 2.1)."""
         drive, port = self._drive(), self._port()
         if self.power_cycled:
+            drive.statusword()  # an absent node answers NAK now, not after reset_timeout
             port.nmt_reset()
             self.mode = None
             drive.wait_for_node()

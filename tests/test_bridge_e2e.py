@@ -1,0 +1,192 @@
+"""End to end: a TCP client, the bridge, and simulated EPOS4 drives (issue 6, "must show" 1).
+
+Two chains, the same scenario:
+
+* ``canopen``: the bridge's canopen backend (python-can ``virtual`` interface)
+  on the CAN bus of ``epos_link.simulator.core.Epos4Simulator``, whose drives
+  are canopen ``LocalNode`` s over the CiA 402 drive model;
+* ``epos``: the bridge's epos backend, MAXON SERIAL V2 over a pseudo-terminal
+  to the simulated EPOS4 (axis 1 is the EPOS4 itself, axis 2 a drive behind its
+  CAN gateway), through ``epos_link.canopen_adapter.connect_node``.
+
+Faults are injected through the bridge itself: S80/S81 write the simulator's
+command object 2100h (1 = positive limit switch fault, see epos4.eds).
+Position factor 1000: user units are mm, the simulator counts increments.
+"""
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from typing import Any, Iterator
+
+import pytest
+
+from epos_link.simulator.core import Epos4Simulator
+from epos_link.simulator.link import PtyLink
+from tcp_bridge.axes import AxisTable
+from tcp_bridge.commands import COMMANDS
+from tcp_bridge.engine import build_engine
+from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.server import BridgeServer, ServerOptions
+
+TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.02,
+          "poll_interval": 0.002}
+
+
+class Bridge:
+    """Simulator + bridge server on a private event loop thread + one client socket."""
+
+    def __init__(self, kind: str) -> None:
+        import socket
+
+        self.kind = kind
+        self.sim: Any = None
+        self.link: Any = None
+        if kind == "canopen":
+            self.sim = Epos4Simulator(1, [2, 3])
+            bus = {"backend": "canopen", "interface": "virtual", "channel": self.sim.channel,
+                   "receive_own_messages": False, "sdo_timeout": 0.2}
+            nodes = (2, 3)
+        else:
+            self.sim = Epos4Simulator(1, [2])
+            self.link = PtyLink(self.sim).start()
+            bus = {"backend": "epos", "url": self.link.path, "baudrate": 115200,
+                   "timeout": 0.5, "gateway_node_id": 1}
+            nodes = (1, 2)
+        axes = [{"device": 5, "node_id": n, "position_factor": 1000} for n in nodes]
+        axes.append({"device": 5, "node_id": 9, "position_factor": 1000})  # absent
+        table = AxisTable.from_mapping({"bridge": TIMING, "bus": {"can1": bus}, "axis": axes})
+        self.engine = build_engine(table)
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.server = BridgeServer(self.engine, ServerOptions(ports=(0, 0)))
+        asyncio.run_coroutine_threadsafe(self.server.start(), self.loop).result(10)
+        self.sock = socket.create_connection(self.server.addresses[0], timeout=10)
+
+    def ask(self, line: str) -> Reply:
+        self.sock.sendall(line.encode() + b"\r")
+        data = b""
+        while len(data) < REPLY_SIZE:
+            chunk = self.sock.recv(REPLY_SIZE - len(data))
+            assert chunk, "bridge closed the connection"
+            data += chunk
+        return decode_reply(data)
+
+    def ok(self, line: str) -> str:
+        reply = self.ask(line)
+        assert reply.status is Status.ACK, (line, reply)
+        return reply.value or ""
+
+    def poll(self, line: str, want: str, timeout: float = 5.0) -> float:
+        start = time.monotonic()
+        while self.ok(line) != want:
+            assert time.monotonic() - start < timeout, f"{line} never became {want}"
+            time.sleep(0.01)
+        return time.monotonic() - start
+
+    def close(self) -> None:
+        self.sock.close()
+        asyncio.run_coroutine_threadsafe(self.server.close(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+        if self.link is not None:
+            self.link.close()
+        self.sim.close()
+
+
+@pytest.fixture(scope="module", params=["canopen", "epos"])
+def bridge(request: pytest.FixtureRequest) -> Iterator[Bridge]:
+    b = Bridge(request.param)
+    yield b
+    b.close()
+
+
+@pytest.mark.parametrize("axis", [1, 2])
+def test_full_scenario(bridge: Bridge, axis: int) -> None:
+    a = str(axis)
+    ok, ask, poll = bridge.ok, bridge.ask, bridge.poll
+    assert ok(a + "R99").startswith("2.3-py")
+    # enable (the first enable NMT-resets the node and writes the parameters)
+    ok(a + "S04=1")
+    sw = int(ok(a + "R10"))
+    assert sw & 0x6F == 0x27  # CiA 402 operation enabled (spec 4.a bits 0, 1, 2, 5)
+    assert ok(a + "R04") == "1"
+    # velocity and acceleration in user units (mm/s, mm/s^2)
+    ok(a + "S05=20")
+    ok(a + "S06=200")
+    assert (ok(a + "R05"), ok(a + "R06")) == ("20", "200")
+    # absolute move, poll R82 until 1
+    ok(a + "S02=5.25")
+    ok(a + "S00=1")
+    assert ok(a + "R86") == "1"
+    poll(a + "R82", "1")
+    assert ok(a + "R12") == "5.25"
+    assert ok(a + "R15") == "1"  # profile position
+    # relative move
+    ok(a + "S02=-2")
+    ok(a + "S00=2")
+    poll(a + "R82", "1")
+    assert ok(a + "R12") == "3.25"
+    # velocity move, stopped mid-way
+    ok(a + "S05=10")
+    ok(a + "S00=3")
+    time.sleep(0.3)
+    assert ok(a + "R82") == "0"
+    assert int(ok(a + "R14")) > 0
+    ok(a + "S00=8")
+    poll(a + "R82", "1")
+    stopped = float(ok(a + "R12"))
+    assert stopped > 3.25 + 1.0  # 10 mm/s for about 0.3 s at least
+    time.sleep(0.1)
+    assert float(ok(a + "R12")) == stopped and ok(a + "R14") == "0"
+    assert ok(a + "R04") == "1"  # stop is halt: still enabled
+    # home (the simulated homing completes at once at 30B0h = 0)
+    ok(a + "S00=9")
+    poll(a + "R82", "1")
+    assert ok(a + "R12") == "0"
+    # fault injection through raw SDO access (2100h, 4 bytes, 1 = positive limit switch)
+    ok(a + "S80=0x21000004")
+    ok(a + "S81=1")
+    assert ok(a + "R84") == "1"
+    sw = int(ok(a + "R10"))
+    assert sw & 0x4F == 0x08  # fault (spec 4.a bit 3)
+    assert int(ok(a + "R11")) == 1 << 6  # spec 4.b bit 6: positive limit switch
+    assert int(ok(a + "R18")) & 0x01  # spec 4.c bit 0: generic error
+    assert ok(a + "R83") == "1"  # the limit is active (statusword bit 11)
+    assert ask(a + "S04=1").status is Status.NAK  # a faulted drive is not enabled
+    ok(a + "S17=1")
+    assert (ok(a + "R84"), ok(a + "R11"), ok(a + "R18")) == ("0", "0", "0")
+    ok(a + "S04=1")
+    assert ok(a + "R04") == "1"
+    # disable
+    ok(a + "S04=0")
+    assert ok(a + "R04") == "0"
+    assert int(ok(a + "R10")) & 0x6F == 0x21  # ready to switch on
+
+
+def test_rights_are_refused_with_can(bridge: Bridge) -> None:
+    for number, spec in sorted(COMMANDS.items()):
+        if not spec.writable:
+            reply = bridge.ask(f"1S{number:02d}=1")
+            assert (reply.status, reply.kind, reply.cmd) == (Status.CAN, "S", number)
+        if not spec.readable:
+            reply = bridge.ask(f"1R{number:02d}")
+            assert (reply.status, reply.kind, reply.cmd) == (Status.CAN, "R", number)
+
+
+def test_absent_node_is_nak_and_the_bridge_keeps_serving(bridge: Bridge) -> None:
+    start = time.monotonic()
+    for line in ("3R10", "3S04=1", "3S02=1", "3R12"):
+        assert bridge.ask(line).status is Status.NAK
+    assert time.monotonic() - start < 4 * 1.0  # each one SDO timeout (0.2-0.5 s), no hang
+    assert bridge.ok("1R99").startswith("2.3-py")
+
+
+def test_bad_values_reach_no_drive(bridge: Bridge) -> None:
+    before = bridge.ok("2R12")
+    for line in ("2S02=1x", "2S02=", "2S00=7", "2S04=5"):
+        assert bridge.ask(line).status is Status.CAN
+    assert bridge.ok("2R12") == before
