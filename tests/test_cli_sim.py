@@ -1,0 +1,57 @@
+"""`epos-link sim` as a user runs it: a subprocess that prints where it listens."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from typing import Iterator
+
+import pytest
+
+
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "epos_link", *args], capture_output=True,
+                          text=True, timeout=30)
+
+
+@pytest.fixture(params=[["--tcp", "127.0.0.1:0"], ["--pty"]], ids=["tcp", "pty"])
+def served(request: pytest.FixtureRequest) -> Iterator[str]:
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link", "sim", *request.param,
+                             "--drives", "2"], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    line = proc.stdout.readline().strip()
+    assert line.startswith("listening on "), line
+    yield line.split()[-1]
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(10) == 0
+
+
+def test_read_and_write_against_the_simulator(served: str) -> None:
+    out = cli("read", served, "2", "0x1008", "0", "--type", "str")
+    assert out.returncode == 0, out.stderr
+    assert '"EPOS4"' in out.stdout
+    assert cli("write", served, "0", "0x30B0", "0", "-5", "--type", "i32").returncode == 0
+    out = cli("read", served, "0", "0x30B0", "0", "--type", "i32", "--json")
+    assert out.returncode == 0 and '"data": "fbffffff"' in out.stdout.replace('":"', '": "')
+    out = cli("read", served, "0", "0x1234", "0")
+    assert out.returncode == 1 and "0x06020000" in out.stderr
+
+
+@pytest.mark.parametrize("args", [["--corrupt", "2"], ["--tcp", "nowhere"], ["--drives", "200"],
+                                  ["--node-id", "0"]])
+def test_bad_arguments_are_messages(args: list[str]) -> None:
+    out = cli("sim", *args)
+    assert out.returncode == 2
+    assert "Traceback" not in out.stderr and "error" in out.stderr
+
+
+def test_port_in_use_is_a_message() -> None:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        out = cli("sim", "--tcp", f"127.0.0.1:{port}")
+    assert out.returncode == 2 and "cannot listen" in out.stderr and "Traceback" not in out.stderr
