@@ -167,7 +167,7 @@ class Settings:
     ack_timeout: float = 2.0  # bound for the ACK of 00 and 04 (drive acceptance)
     state_timeout: float = 1.0  # bound for one state machine step / mode change
     reset_timeout: float = 5.0  # bound for a node to answer again after NMT reset
-    reset_delay: float = 0.05  # pause after the NMT reset before polling the node
+    reset_delay: float = 0.3  # pause after the NMT reset before polling the node
     poll_interval: float = 0.002  # pause between statusword polls
     debug: bool = False  # initial value of command 91
     state_file: Optional[Path] = None

@@ -33,7 +33,7 @@ from typing import Callable, Final, List, Optional, Tuple, Union
 from .axes import AxisConfig, DeviceCode, ParameterStore, parameter_spec, to_stored
 from .commands import CommandKind, CommandSpec, ObjectRef, SdoSelector
 from .errors import DeviceFailure, InvalidCommand
-from .sdo import SdoPort, object_type
+from .sdo import NodeSilent, SdoPort, object_type
 from .sequences import STATUSWORD, Cia402, Mode, Sw, State, Timing
 from .units import Number, Scaling
 
@@ -188,9 +188,8 @@ class AxisOps:
         if n == 80:
             return lambda: f"0x{stored or 0:08X}"
         if obj is None:
-            if user is None:
-                raise DeviceFailure(f"axis {self.addr}: parameter {n} has no value")
-            return lambda: user  # type: ignore[return-value]
+            value: Value = 0 if user is None else user  # the controller's arrays start at 0
+            return lambda: value
         port, scaling = self._port(), self.scaling()
 
         def read() -> Value:
@@ -212,10 +211,10 @@ class AxisOps:
         code = port.read(0x603F, 0)
         try:
             inputs = port.read(0x60FD, 0)
-        except DeviceFailure as exc:
-            if exc.code is None:
-                raise  # the node stopped answering
-            inputs = 0  # no digital inputs object: only the error code counts
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            inputs = 0  # no digital inputs object (an abort): only the error code counts
         return detailed_error_from_code(code, inputs)
 
     # -- writes ------------------------------------------------------------------------
@@ -388,7 +387,7 @@ class AxisOps:
 
 def note_failure(ops: AxisOps, exc: BaseException) -> None:
     """A node that stopped answering may have been power cycled: re-init on next enable."""
-    if isinstance(exc, DeviceFailure) and exc.code in (None, 0x05040000):
+    if isinstance(exc, NodeSilent):
         ops.power_cycled = True
 
 

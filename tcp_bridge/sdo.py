@@ -38,6 +38,17 @@ OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
 }
 
 
+SDO_TIMEOUT_ABORT: Final = 0x05040000  # CiA 301: SDO protocol timed out (a gateway's answer)
+
+
+class NodeSilent(DeviceFailure):
+    """The node did not answer at all (timeout, link failure), as opposed to an abort.
+
+    A node that stops answering may have been power cycled, so its next enable
+    takes the power-cycle path again (spec 2.1 "On Enable -> Write Parameter").
+    """
+
+
 def object_type(index: int, subindex: int) -> Tuple[int, bool]:
     """(size, signed) of an object; unknown objects are 4 unsigned bytes."""
     return OBJECT_TYPES.get((index, subindex)) or OBJECT_TYPES.get((index, None)) or (4, False)
@@ -129,7 +140,9 @@ class SdoPort:
             raise exc  # a bug, not a device answer, surfaces as is (still answered NAK)
         code = getattr(exc, "code", None)
         text = f"{self.name}: {what} 0x{index:04X}/{subindex} failed: {exc}"
-        raise DeviceFailure(text, code if isinstance(code, int) else None) from exc
+        if not isinstance(code, int) or code == SDO_TIMEOUT_ABORT:
+            raise NodeSilent(text, code if isinstance(code, int) else None) from exc
+        raise DeviceFailure(text, code) from exc
 
     def _trace(self, what: str, index: int, subindex: int, data: Optional[bytes],
                exc: Optional[BaseException]) -> None:

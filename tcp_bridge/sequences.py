@@ -115,7 +115,7 @@ class Timing:
     ack_timeout: float = 2.0
     state_timeout: float = 1.0
     reset_timeout: float = 5.0
-    reset_delay: float = 0.05
+    reset_delay: float = 0.3
     poll_interval: float = 0.002
 
 
@@ -216,19 +216,26 @@ class Cia402:
         self.port.write(CONTROLWORD, 0, Cw.DISABLE_VOLTAGE)
 
     def wait_for_node(self) -> None:
-        """After an NMT reset: poll until the node answers and its self test is over."""
+        """After an NMT reset: wait ``reset_delay``, then poll until the node shows the
+        state a drive boots into (SWITCH ON DISABLED, or FAULT if it boots faulty).
+
+        Powered states would be the node before the reset took effect, and a
+        silent node is still booting; both are waited out within ``reset_timeout``.
+        """
         self._sleep(self.timing.reset_delay)
         deadline = self._clock() + self.timing.reset_timeout
+        booted = (State.SWITCH_ON_DISABLED, State.FAULT)
         while True:
             try:
-                if self.state() is not State.NOT_READY_TO_SWITCH_ON:
+                state = self.state()
+                if state in booted:
                     return
-            except DeviceFailure:
-                if self._clock() >= deadline:
-                    raise
+                why = f"still {state.name}"
+            except DeviceFailure as exc:
+                why = str(exc)
             if self._clock() >= deadline:
-                raise DeviceFailure(f"{self.port.name}: no answer {self.timing.reset_timeout:g} s "
-                                    "after NMT reset")
+                raise DeviceFailure(f"{self.port.name}: not back {self.timing.reset_timeout:g} s "
+                                    f"after NMT reset ({why})")
             self._sleep(max(self.timing.poll_interval, 0.01))
 
     # -- modes and motion --------------------------------------------------------

@@ -190,3 +190,34 @@ def test_bad_values_reach_no_drive(bridge: Bridge) -> None:
     for line in ("2S02=1x", "2S02=", "2S00=7", "2S04=5"):
         assert bridge.ask(line).status is Status.CAN
     assert bridge.ok("2R12") == before
+
+
+def test_serve_simulate_from_the_command_line() -> None:
+    """``tcp-bridge serve --simulate --axes 2``: the sim backend, whole chain in one process."""
+    import signal
+    import subprocess
+    import sys
+
+    from tcp_bridge.cli import send
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tcp_bridge.cli", "serve", "--simulate", "--axes", "2",
+         "--port", "0", "--maintenance-port", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # type: ignore[union-attr]
+        assert "listening on" in line and "axes 1=can1/1, 2=can1/2" in line
+        address = line.split("listening on ")[1].split()[0]
+        replies = send(address, ["2S04=1", "2S05=50", "2S06=500", "2S02=0.5", "2S00=1",
+                                 "2R04", "1R10", "2R99"])
+        assert [r.status for r in replies] == [Status.ACK] * 8
+        assert replies[5].value == "1" and replies[6].value is not None
+        deadline = time.monotonic() + 5
+        while send(address, ["2R82"])[0].value != "1":
+            assert time.monotonic() < deadline
+        assert send(address, ["2R12"])[0].value == "0.5"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(15) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()

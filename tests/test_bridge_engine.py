@@ -323,6 +323,7 @@ def test_unacknowledged_set_point_is_nak_within_the_bound() -> None:
     assert ask(engine, "1S00=1").status is Status.NAK
     assert time.monotonic() - start < 1.0  # ack_timeout is 0.2 s here
     assert ok(engine, "1R86") == "0"  # never accepted
+    assert not engine.axes[1].power_cycled  # it answered: no reason to reset it on enable
 
 
 def test_slave_axis_follows_with_its_direction() -> None:
@@ -498,6 +499,33 @@ def test_wait_status_is_bounded_by_the_clock() -> None:
     with pytest.raises(DeviceFailure, match="within 0.5 s"):
         drive.wait_status(lambda sw: False, 0.5, "never")
     assert 0.5 <= now[0] < 0.6
+
+
+def test_wait_for_node_waits_out_the_old_state_and_silence() -> None:
+    # After NMT reset a drive boots into SWITCH ON DISABLED (CiA 402-2 6.4.1.1);
+    # reads before the reset took effect, or while the node boots, are waited out.
+    answers: List[Any] = [0x0237, DeviceFailure("silent"), DeviceFailure("silent"), 0x0250]
+    now = [0.0]
+
+    class Port:
+        name = "p"
+
+        def read(self, index: int, sub: int) -> int:
+            answer = answers.pop(0)
+            if isinstance(answer, Exception):
+                raise answer
+            return answer
+
+    def sleep(dt: float) -> None:
+        now[0] += dt
+
+    drive = Cia402(Port(), Timing(reset_delay=0.3, reset_timeout=1.0),  # type: ignore[arg-type]
+                   clock=lambda: now[0], sleep=sleep)
+    drive.wait_for_node()
+    assert answers == [] and now[0] >= 0.3
+    answers[:] = [0x0237] * 200
+    with pytest.raises(DeviceFailure, match="still OPERATION_ENABLED"):
+        drive.wait_for_node()
 
 
 # --- execution: buses serialised, parallel, loop never blocked -------------------------------
