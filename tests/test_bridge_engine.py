@@ -9,7 +9,6 @@ bit 8 halt); expected drive values are worked out by hand from spec 3.6.
 from __future__ import annotations
 
 import asyncio
-import struct
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -19,7 +18,7 @@ from tcp_bridge.axes import AxisTable
 from tcp_bridge.backends.instant import FakeNode
 from tcp_bridge.commands import COMMANDS
 from tcp_bridge.engine import Engine, build_engine, software_version
-from tcp_bridge.errors import DeviceFailure, InvalidCommand
+from tcp_bridge.errors import DeviceFailure
 from tcp_bridge.operations import detailed_error_from_code
 from tcp_bridge.protocol import Reply, Status, decode_reply, format_error_reply, parse_request
 from tcp_bridge.sequences import Cia402, State, Timing, decode_state

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import signal
 import socket
 import subprocess
@@ -15,7 +14,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Optional, Tuple
+from typing import Any, Dict, Iterator, List
 
 import pytest
 
@@ -23,7 +22,7 @@ from tcp_bridge import cli
 from tcp_bridge.axes import AxisTable
 from tcp_bridge.backends.instant import FakeNode
 from tcp_bridge.engine import Engine, build_engine
-from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.protocol import REPLY_SIZE, Status, decode_reply
 from tcp_bridge.server import BridgeServer, ServerOptions
 
 FAST = {"ack_timeout": 0.5, "state_timeout": 0.5, "reset_timeout": 0.5, "reset_delay": 0.0,
