@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from .axes import AxisConfig, AxisTable, ParameterStore, parameter_spec
+from .axes import AxisConfig, AxisTable, parameter_spec
+from .parameters import ParameterStore
 from .commands import CommandSpec, resolve
 from .errors import InvalidCommand
 from .operations import AxisOps, note_failure

@@ -30,7 +30,8 @@ from __future__ import annotations
 import logging
 from typing import Callable, Final, List, Optional, Tuple, Union
 
-from .axes import AxisConfig, DeviceCode, ParameterStore, parameter_spec, to_stored
+from .axes import AxisConfig, DeviceCode, parameter_spec, to_stored
+from .parameters import ParameterStore
 from .commands import CommandKind, CommandSpec, ObjectRef, SdoSelector
 from .errors import DeviceFailure, InvalidCommand
 from .sdo import NodeSilent, SdoPort, object_type

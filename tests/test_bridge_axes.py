@@ -1,4 +1,4 @@
-"""Tests of tcp_bridge.axes: the axis table (spec section 3) and the parameter array.
+"""Tests of tcp_bridge.axes (the axis table, spec section 3) and tcp_bridge.parameters.
 
 Expected values are worked out by hand from spec 3 and 3.6 in the comments.
 """
@@ -12,16 +12,8 @@ from typing import Any, Dict
 
 import pytest
 
-from tcp_bridge.axes import (
-    DEFAULTS,
-    AxisTable,
-    BusOffset,
-    ConfigError,
-    DeviceCode,
-    ParameterStore,
-    simulated_table,
-    write_atomically,
-)
+from tcp_bridge.axes import DEFAULTS, AxisTable, BusOffset, ConfigError, DeviceCode, simulated_table
+from tcp_bridge.parameters import ParameterStore, write_atomically
 
 EXAMPLE = Path(str(resources.files("tcp_bridge") / "example_axes.toml"))
 
