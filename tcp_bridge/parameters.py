@@ -41,7 +41,10 @@ class ParameterStore:
     def __init__(self, table: AxisTable, state_file: Optional[Path] = None) -> None:
         self.table = table
         self.state_file = state_file if state_file is not None else table.settings.state_file
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the arrays; held briefly (the event loop reads too)
+        self._file_lock = threading.Lock()  # the state file; held while writing it
+        self._version = 0  # of the arrays' S-command values
+        self._written = 0  # version in the state file
         self._base: Dict[int, Dict[int, int]] = {}
         for addr, axis in table.axes.items():
             values = {19: int(axis.device)}
@@ -69,11 +72,22 @@ class ParameterStore:
         return from_stored(COMMANDS[cmd], stored, self.table.axes[addr].position_factor)
 
     def set(self, addr: int, cmd: int, stored: int) -> None:
-        """Store a value set by an S command and persist the state file."""
+        """Store a value set by an S command and persist the state file.
+
+        The file is written outside the arrays' lock, so readers never wait for
+        a disk; of two concurrent writers the newer snapshot wins.
+        """
         with self._lock:
             self._overrides[addr][cmd] = int(stored)
-            if self.state_file is not None:
-                self._save_locked()
+            self._version += 1
+            version = self._version
+            snapshot = {a: dict(v) for a, v in self._overrides.items() if v}
+        if self.state_file is None:
+            return
+        with self._file_lock:
+            if version > self._written:
+                self._save(snapshot)
+                self._written = version
 
     def set_user(self, addr: int, cmd: int, user: Number) -> int:
         stored = to_stored(COMMANDS[cmd], user, self.table.axes[addr].position_factor)
@@ -134,7 +148,7 @@ class ParameterStore:
             raise ConfigError(f"state file {self.state_file} is damaged ({exc}); "
                               "move it away to start from the axis table") from None
 
-    def _save_locked(self) -> None:
+    def _save(self, overrides: Dict[int, Dict[int, int]]) -> None:
         assert self.state_file is not None
         data = {
             "format": self.FORMAT,
@@ -144,7 +158,7 @@ class ParameterStore:
                     "position_factor": self.table.axes[addr].position_factor,
                     "parameters": {str(c): v for c, v in sorted(values.items())},
                 }
-                for addr, values in sorted(self._overrides.items()) if values
+                for addr, values in sorted(overrides.items())
             },
         }
         write_atomically(self.state_file, json.dumps(data, indent=1) + "\n")

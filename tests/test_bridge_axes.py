@@ -179,3 +179,23 @@ def test_atomic_write_keeps_old_content_on_failure(tmp_path: Path, monkeypatch: 
         write_atomically(path, "new")
     assert path.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.json"]
+
+
+def test_concurrent_sets_leave_the_newest_state(tmp_path: Path) -> None:
+    import threading
+
+    path = tmp_path / "s.json"
+    t = AxisTable.from_mapping(table())
+    store = ParameterStore(t, path)
+
+    def writer(cmd: int) -> None:
+        for i in range(50):
+            store.set(1, cmd, i)
+
+    threads = [threading.Thread(target=writer, args=(c,)) for c in (20, 21, 54)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    again = ParameterStore(t, path)
+    assert [again.get(1, c) for c in (20, 21, 54)] == [49, 49, 49]
