@@ -45,7 +45,7 @@ def run_tests(args: list[str]) -> int:
 def main() -> int:
     jobs = {"start", "test", "shell"}
     if len(sys.argv) < 2 or sys.argv[1] not in jobs:
-        print("usage: python3 dev.py start [options] | test [pytest options]",
+        print("usage: python3 dev.py start [tcp-bridge serve options] | test [pytest options]",
               file=sys.stderr)
         return 2
     job, rest = sys.argv[1], sys.argv[2:]
@@ -54,8 +54,8 @@ def main() -> int:
         return run_tests(rest)
     if job == "shell":
         return subprocess.call([str(PY), *rest], cwd=ROOT)
-    # The main job. Until the bridge lands it decodes the guide's example frames.
-    cmd = [str(BIN / "epos-link"), "decode", "--file", str(ROOT / "fixtures" / "guide_read_home_position.txt"), *rest]
+    # The main job: the PSI TCP bridge on the embedded simulator (issue 6).
+    cmd = [str(BIN / "tcp-bridge"), "serve", "--simulate", *rest]
     try:
         return subprocess.call(cmd, cwd=ROOT)
     except KeyboardInterrupt:

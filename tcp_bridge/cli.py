@@ -150,7 +150,8 @@ def parser() -> argparse.ArgumentParser:
     src.add_argument("--config", metavar="FILE", help="axis table (TOML), see example_axes.toml")
     src.add_argument("--simulate", action="store_true",
                      help="simulated EPOS4 drives: axis 1 the EPOS4, the rest behind its gateway")
-    s.add_argument("--axes", type=int, default=1, metavar="N", help="with --simulate (default 1)")
+    s.add_argument("--axes", type=int, default=3, metavar="N",
+                   help="with --simulate: the EPOS4 itself and N-1 drives behind its gateway (default 3)")
     s.add_argument("--sim-link", choices=["inprocess", "pty"], help=argparse.SUPPRESS)
     s.add_argument("--sim-baud", type=int, help=argparse.SUPPRESS)
     s.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
