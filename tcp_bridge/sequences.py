@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Callable, Final
 
+from epos_link.cia402 import State, state_from_statusword
+
 from .errors import DeviceFailure
 from .sdo import SdoPort
 
@@ -42,19 +44,6 @@ MODES_OF_OPERATION: Final = 0x6060
 MODES_DISPLAY: Final = 0x6061
 TARGET_POSITION: Final = 0x607A
 TARGET_VELOCITY: Final = 0x60FF
-
-
-class State(IntEnum):
-    """CiA 402-2 6.4.1.1 power states."""
-
-    NOT_READY_TO_SWITCH_ON = 0
-    SWITCH_ON_DISABLED = 1
-    READY_TO_SWITCH_ON = 2
-    SWITCHED_ON = 3
-    OPERATION_ENABLED = 4
-    QUICK_STOP_ACTIVE = 5
-    FAULT_REACTION_ACTIVE = 6
-    FAULT = 7
 
 
 class Cw(IntEnum):
@@ -81,25 +70,12 @@ class Sw(IntEnum):
     OP_MODE_13 = 1 << 13  # pp: following error; hm: homing error
 
 
-# (mask, value) per state, CiA 402-2 Table "Statusword" state coding.
-_STATE_CODING: Final = (
-    (0x4F, 0x00, State.NOT_READY_TO_SWITCH_ON),
-    (0x4F, 0x40, State.SWITCH_ON_DISABLED),
-    (0x6F, 0x21, State.READY_TO_SWITCH_ON),
-    (0x6F, 0x23, State.SWITCHED_ON),
-    (0x6F, 0x27, State.OPERATION_ENABLED),
-    (0x6F, 0x07, State.QUICK_STOP_ACTIVE),
-    (0x4F, 0x0F, State.FAULT_REACTION_ACTIVE),
-    (0x4F, 0x08, State.FAULT),
-)
-
-
 def decode_state(statusword: int) -> State:
     """The power state shown by a statusword; DeviceFailure if it shows none."""
-    for mask, value, state in _STATE_CODING:
-        if statusword & mask == value:
-            return state
-    raise DeviceFailure(f"statusword 0x{statusword:04X} shows no CiA 402 state")
+    state = state_from_statusword(statusword)
+    if state is None:
+        raise DeviceFailure(f"statusword 0x{statusword:04X} shows no CiA 402 state")
+    return state
 
 
 class Mode(IntEnum):

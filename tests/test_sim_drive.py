@@ -16,7 +16,7 @@ from canopen import SdoAbortedError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epos_link.simulator.cia402 import (
+from epos_link.cia402 import (
     STATE_BITS,
     TRANSITIONS,
     Command,

@@ -57,7 +57,7 @@ from enum import IntEnum
 
 from canopen import SdoAbortedError
 
-from .cia402 import (
+from ..cia402 import (
     CW,
     POWERED_STATES,
     STATE_BITS,
