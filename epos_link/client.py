@@ -30,11 +30,14 @@ Errors and retries:
   retried the same way;
 * any other :class:`DeviceError` and every :class:`LocalProtocolError` are final.
 
-Limits of the protocol: answers carry no request id. An answer later than the
-deadline is discarded with the stale input before the next request, but one
-that arrives after that flush is taken for the next request's answer. Choose
-timeouts above the device's own (and, through the gateway, above its SDO
-timeout) when that matters.
+Late answers: answers carry no request id, so an answer that comes after its
+request timed out could be taken for the next request's. A request that timed
+out in silence (no byte at all came back) leaves the link "out of step": before
+the next request the client waits up to ``late_answer_timeout`` (default
+500 ms, the device's frame timeout) for that late answer and drops it. A
+timeout with garbage received means the answer came and was damaged, so there
+is nothing to wait for. A scan with a short per-node timeout therefore still
+costs, per absent node, the gateway's own SDO timeout.
 """
 from __future__ import annotations
 
@@ -148,7 +151,8 @@ class EposClient:
 
     def __init__(self, transport: Transport, *, gateway_node_id: Optional[int] = None,
                  timeout: float = DEFAULT_TIMEOUT, retries: int = DEFAULT_RETRIES,
-                 segment_size: int = MAX_SEGMENT, max_upload: int = DEFAULT_MAX_LENGTH) -> None:
+                 segment_size: int = MAX_SEGMENT, max_upload: int = DEFAULT_MAX_LENGTH,
+                 late_answer_timeout: float = DEFAULT_TIMEOUT) -> None:
         if timeout <= 0:
             raise ValueError("timeout must be positive")
         if retries < 0:
@@ -164,6 +168,8 @@ class EposClient:
         self._lock = threading.Lock()
         self._decoder = FrameDecoder()
         self._needs_reopen = False
+        self._late_answer_due = False
+        self.late_answer_timeout = late_answer_timeout
         self.stats = ClientStats()
         # Encoded ReadObject frames and their names: the hot path encodes nothing.
         self._read_frames: dict[tuple[int, int, int], tuple[bytes, str]] = {}
@@ -208,11 +214,14 @@ class EposClient:
 
         ``what`` names the request in a timeout message."""
         transport, decoder = self.transport, self._decoder
+        if self._late_answer_due:
+            self._swallow_late_answer()
         transport.reset_input()
         decoder.reset()
         transport.write(frame)
         deadline = time.monotonic() + timeout
         read, next_frame, feed = transport.read, decoder.next_frame, decoder.feed
+        heard = False
         while True:
             try:
                 item = next_frame()
@@ -224,11 +233,15 @@ class EposClient:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     held = decoder.pending
+                    # Silence, not garbage: the device may still answer (a gateway
+                    # waiting for an absent node's SDO takes its own time).
+                    self._late_answer_due = not heard
                     raise EposTimeoutError(
                         f"{what or 'request'}: no answer within {timeout:g} s"
                         + (f" ({held} bytes of an incomplete answer)" if held else ""))
                 data = read(READ_CHUNK, left)
                 if data:
+                    heard = True
                     feed(data)
                 continue
             got = cast(Frame, item)
@@ -236,6 +249,31 @@ class EposClient:
                 raise MessageFormatError(
                     f"op code 0x{got.opcode:02X} where an answer (0x00) was expected", got.data)
             return answer_type.from_payload(got.data)
+
+    def _swallow_late_answer(self) -> None:
+        """Wait (at most ``late_answer_timeout``) for the answer to a request that
+        timed out in silence, and drop it.
+
+        The device answers every request (guide 2.2.1) and answers carry no
+        request id, so a late answer would otherwise be taken for the next
+        request's: after a silent timeout the link is out of step until it comes.
+        """
+        self._late_answer_due = False
+        decoder = self._decoder
+        deadline = time.monotonic() + self.late_answer_timeout
+        while True:
+            try:
+                if decoder.next_frame() is not NEED_DATA:
+                    _log.debug("dropped a late answer")
+                    return
+            except RemoteProtocolError:
+                continue
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            data = self.transport.read(READ_CHUNK, left)
+            if data:
+                decoder.feed(data)
 
     def _call(self, op: Callable[[float], T], timeout: Optional[float], retries: Optional[int],
               retry_codes: frozenset[int] = _RETRY_CODES) -> T:
