@@ -16,8 +16,10 @@ continues from the point after the bad bytes, so no later frame is lost):
 * DLE STX inside a frame               -> :class:`TruncatedFrameError`, then the new frame
 * DLE followed by neither DLE nor STX  -> :class:`StuffingError`, rescan after the DLE
 * Len above 143 words                  -> :class:`FrameLengthError`, rescan after Len
-* CRC mismatch                         -> :class:`CrcError` carrying the decoded frame
-* input ends inside a frame            -> :class:`TruncatedFrameError` from :meth:`close`
+* CRC mismatch                         -> :class:`CrcError` carrying the decoded frame;
+  if the bad frame holds ``90 90 02``, a damaged lone DLE may have paired with the
+  next frame's sync, so the bytes from the second DLE are scanned again
+* input ends inside a frame            -> :class:`TruncatedFrameError` after :meth:`close`
 
 Memory is bounded: a frame is at most 2 + 2 * (2 + 286 + 2) bytes on the wire,
 junk is reported in runs of at most ``max_junk`` bytes, and ``feed`` refuses
@@ -32,6 +34,7 @@ from .codes import DLE, MAX_LEN_WORDS, STX
 from .crc import frame_crc
 from .errors import (
     CrcError,
+    RemoteProtocolError,
     FrameLengthError,
     JunkBytesError,
     LocalProtocolError,
@@ -102,6 +105,8 @@ class FrameDecoder:
         self._body = bytearray()  # unstuffed OpCode, Len, Data, CRC of the current frame
         self._raw = bytearray()   # stuffed bytes of the current frame, for error reports
         self._need = 2            # unstuffed bytes wanted: header first, then the whole frame
+        self._eof = False
+        self.resync_hidden = True  # see _hidden_sync
 
     @property
     def pending(self) -> int:
@@ -109,6 +114,8 @@ class FrameDecoder:
         return len(self._buf) + len(self._junk) + len(self._raw)
 
     def feed(self, data: bytes) -> None:
+        if self._eof:
+            raise LocalProtocolError("feed() after close(): the input has ended")
         if len(self._buf) + len(data) > self.max_pending:
             raise LocalProtocolError(
                 f"decoder holds {len(self._buf)} undecoded bytes; call next_frame() "
@@ -120,15 +127,22 @@ class FrameDecoder:
         self.__init__(max_junk=self.max_junk, max_pending=self.max_pending)  # type: ignore[misc]
 
     def close(self) -> None:
-        """End of input: report a partial frame or unreported junk, if any.
+        """End of input. From now on :meth:`next_frame` reports a partial frame and
+        unreported junk (each error once) instead of waiting for more bytes."""
+        self._eof = True
 
-        Raises at most one error per call; call again until it returns.
-        """
+    def _report_end(self) -> None:
+        """At end of input: raise what is left, or return when nothing is."""
         if self._in_frame:
-            raw = bytes(self._raw + self._buf)
+            rest = bytes(self._raw + self._buf)
             self._start_scan()
             self._buf.clear()
-            raise TruncatedFrameError(f"input ended inside a frame ({len(raw)} bytes)", raw)
+            # A lone DLE in the cut frame may hide the next frame's sync (see _finish).
+            hidden = self._hidden_sync(rest, b"")
+            if hidden >= 0:
+                self._buf += rest[hidden + 1:]
+                rest = rest[:hidden + 1]
+            raise TruncatedFrameError(f"input ended inside a frame ({len(rest)} bytes)", rest)
         leftover = bytes(self._junk + self._buf)
         self._junk.clear()
         self._buf.clear()
@@ -150,6 +164,8 @@ class FrameDecoder:
         while True:
             if not self._in_frame:
                 if not self._find_sync():
+                    if self._eof:
+                        self._report_end()
                     return NEED_DATA
                 continue
             buf, body = self._buf, self._body
@@ -202,6 +218,14 @@ class FrameDecoder:
             self._raw += buf[:i]
             del buf[:i]
             if len(body) < self._need:
+                if self._eof:
+                    self._report_end()
+                    continue  # bytes given back by _report_end may hold a frame
+                return NEED_DATA
+            if (not buf and not self._eof and self._raw.endswith(_DLE_DLE)
+                    and not self._crc_matches()):
+                # A bad frame ending in an escaped DLE: the next byte tells whether
+                # that DLE really began the next frame's sync (see _finish).
                 return NEED_DATA
             return self._finish()
 
@@ -226,6 +250,41 @@ class FrameDecoder:
             self._report_junk(len(self._junk))  # the new frame stays in progress
         return True
 
+    def _hidden_sync(self, raw: bytes, after: "bytes | None" = None) -> int:
+        """Where in ``raw`` (the stuffed bytes of a bad frame) a damaged lone DLE
+        may have swallowed the DLE of the next frame's sync: the position of the
+        first DLE of a ``90 90 02`` from which a frame decodes cleanly (or, with
+        the input still open, starts cleanly). -1 if there is none.
+
+        An escaped 0x90 followed by a 0x02 data byte looks the same on the wire,
+        so each candidate is tried on a scratch decoder before it is believed.
+        """
+        if not self.resync_hidden:
+            return -1
+        after = bytes(self._buf) if after is None else after
+        text = raw + after
+        start = 2
+        while True:
+            at = text.find(b"\x90\x90\x02", start)
+            if at < 0 or at >= len(raw) - 1:
+                return -1
+            trial = FrameDecoder(max_junk=self.max_junk)
+            trial.resync_hidden = False
+            trial.feed(text[at + 1:])
+            if self._eof:
+                trial.close()
+            try:
+                if trial.next_frame() is not NEED_DATA or not self._eof:
+                    return at
+            except RemoteProtocolError:
+                pass
+            start = at + 1
+
+    def _crc_matches(self) -> bool:
+        body = self._body
+        words = body[1]
+        return int.from_bytes(body[-2:], "little") == frame_crc(body[0], words, bytes(body[2:2 + 2 * words]))
+
     def _finish(self) -> Frame:
         body = bytes(self._body)
         raw = bytes(self._raw)
@@ -236,6 +295,14 @@ class FrameDecoder:
         expected = frame_crc(opcode, words, data)
         if received != expected:
             frame = Frame(opcode, data, received, crc_ok=False)
+            # A lone DLE left by damage pairs with the DLE of the next frame's
+            # sync and hides it ("90 | 90 02" read as an escaped 0x90, then 0x02).
+            # Since this frame is bad anyway, read "90 90 02" the other way:
+            # give back the bytes from its second DLE, so that sync is found.
+            hidden = self._hidden_sync(raw)
+            if hidden >= 0:
+                self._buf[:0] = raw[hidden + 1:]
+                raw = raw[:hidden + 1]
             raise CrcError(
                 f"CRC 0x{received:04X} received, 0x{expected:04X} computed", raw, frame)
         return Frame(opcode, data, received)
@@ -245,11 +312,10 @@ def decode_frames(data: bytes) -> list[Frame]:
     """All good frames in ``data``; raises the first error met."""
     dec = FrameDecoder()
     dec.feed(data)
+    dec.close()
     frames: list[Frame] = []
     while True:
         item = dec.next_frame()
         if isinstance(item, _NeedData):
-            break
+            return frames
         frames.append(item)
-    dec.close()
-    return frames

@@ -34,10 +34,6 @@ def feed_all(decoder_factory: Callable, chunks: list[bytes]) -> tuple[list, list
     for chunk in chunks:
         dec.feed(chunk)
         drain()
-    while True:
-        try:
-            dec.close()
-            break
-        except RemoteProtocolError as exc:
-            errors.append(exc)
+    dec.close()
+    drain()
     return frames, errors

@@ -60,6 +60,12 @@ DAMAGED = [
     ("junk after", GUIDE_REQUEST + b"\x01\x02", [JunkBytesError], [REQ_FRAME]),
     ("lone DLE at end", GUIDE_REQUEST + b"\x90", [JunkBytesError], [REQ_FRAME]),
     ("DLE DLE STX in junk is a sync", b"\x90" + GUIDE_REQUEST, [JunkBytesError], [REQ_FRAME]),
+    # The last CRC byte damaged into a lone DLE pairs with the next sync's DLE.
+    ("lone DLE as last CRC byte", bytes.fromhex("90 02 60 02 01 B0 30 00 2E 90") + GUIDE_ANSWER,
+     [CrcError], [ANS_FRAME]),
+    # A frame cut off right after a lone DLE, the next frame's bytes read as its data.
+    ("cut after a lone DLE", bytes.fromhex("90 02 00 04 00 00 00 00 01 90") + GUIDE_ANSWER,
+     [CrcError], [ANS_FRAME]),
 ]
 
 
@@ -161,10 +167,25 @@ def test_random_bytes_only_raise_protocol_errors(chunks: list[bytes]) -> None:
             except RemoteProtocolError:
                 pass
         assert dec.pending <= 50 + 600 + len(chunk)
-    for _ in range(3):
+    dec.close()
+    for _ in range(100):
         try:
-            dec.close()
-            break
+            if dec.next_frame() is NEED_DATA:
+                break
         except RemoteProtocolError:
             pass
     assert dec.pending == 0
+
+
+@settings(max_examples=400)
+@given(st.integers(0, 255), st.one_of(words, dle_heavy), st.data())
+def test_a_damaged_frame_never_hides_the_next(opcode: int, data: bytes, draw: st.DataObject) -> None:
+    """One byte of a frame replaced (or the frame cut short): the next good frame survives."""
+    wire = bytearray(encode_frame(opcode, data))
+    pos = draw.draw(st.integers(2, len(wire) - 1))
+    if draw.draw(st.booleans()):
+        wire[pos] = draw.draw(st.integers(0, 255))
+    else:
+        del wire[pos:]
+    frames, _ = feed_all(FrameDecoder, [bytes(wire) + GUIDE_ANSWER])
+    assert frames[-1:] == [ANS_FRAME]

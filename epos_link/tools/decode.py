@@ -139,6 +139,9 @@ def describe_frame(frame: Frame, direction: Optional[str],
     return out, req
 
 
+FEED_SLICE = 64 * 1024
+
+
 class StreamDecoder:
     """Decodes the byte stream of one direction, remembering the last request."""
 
@@ -146,12 +149,9 @@ class StreamDecoder:
         self.direction = direction
         self.decoder = FrameDecoder()
 
-    def _drain(self, pair: "Pairing", closing: bool) -> Iterator[Decoded]:
+    def _drain(self, pair: "Pairing") -> Iterator[Decoded]:
         while True:
             try:
-                if closing:
-                    self.decoder.close()
-                    return
                 item = self.decoder.next_frame()
                 if item is NEED_DATA:
                     return
@@ -168,15 +168,14 @@ class StreamDecoder:
                 yield Decoded(self.direction, None, "not a frame", problem=str(exc), raw=exc.raw)
 
     def feed(self, data: bytes, pair: "Pairing") -> Iterator[Decoded]:
-        self.decoder.feed(data)
-        yield from self._drain(pair, False)
+        # In slices, drained in between: the decoder bounds what it holds.
+        for start in range(0, len(data), FEED_SLICE):
+            self.decoder.feed(data[start:start + FEED_SLICE])
+            yield from self._drain(pair)
 
     def close(self, pair: "Pairing") -> Iterator[Decoded]:
-        while True:
-            lines = list(self._drain(pair, True))
-            yield from lines
-            if not lines:
-                return
+        self.decoder.close()
+        yield from self._drain(pair)
 
 
 class Pairing:
