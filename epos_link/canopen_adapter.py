@@ -83,15 +83,10 @@ class EposSdoClient(SdoBase):
 
     def download(self, index: int, subindex: int, data: bytes, force_segment: bool = False) -> None:
         data = bytes(data)
-        if force_segment and len(data) <= 4 and not self._is_gateway():
-            # A DOMAIN of up to 4 bytes: WriteObject carries it just as well.
-            force_segment = False
-        if force_segment and len(data) <= 4:
-            raise _limitation("a forced segmented download of 4 bytes or less")
+        # canopen forces a segmented download for every DOMAIN; WriteObject carries
+        # a value of up to 4 bytes just as well, so the flag only matters above that,
+        # where the client picks a segmented write anyway.
         self._call(lambda: self.client.download(self.node_id, index, subindex, data))
-
-    def _is_gateway(self) -> bool:
-        return self.node_id == 0 or self.node_id == self.client.gateway_node_id
 
     def open(self, index: int, subindex: int = 0, mode: str = "rb", encoding: str = "ascii",
              buffering: int = 1024, size: Optional[int] = None, block_transfer: bool = False,
@@ -147,11 +142,19 @@ class GatewayNetwork(canopen.Network):
             except EposError as exc:
                 raise SdoCommunicationError(f"NMT through the gateway failed: {exc}") from exc
             return
-        kind = "a SYNC message" if can_id == 0x80 else f"a CAN frame with COB-ID 0x{can_id:03X} (PDO)"
-        raise _limitation(kind)
+        raise _limitation(_describe_cob_id(can_id))
 
     def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
         raise _limitation(f"periodic CAN frames (COB-ID 0x{can_id:03X}: PDO, SYNC or heartbeat)")
+
+
+def _describe_cob_id(can_id: int) -> str:
+    """What a raw CAN frame would have been, by the default connection set (guide Table 3-15)."""
+    function = can_id & 0x780
+    kinds = {0x080: "a SYNC or EMCY message", 0x100: "a TIME message",
+             0x580: "a raw SDO frame", 0x600: "a raw SDO frame", 0x700: "a heartbeat or node guarding frame"}
+    kind = kinds.get(function, "a PDO" if 0x180 <= function <= 0x500 else "a raw CAN frame")
+    return f"{kind} (COB-ID 0x{can_id:03X})"
 
 
 class _GatewayNmt(NmtMaster):
@@ -188,6 +191,7 @@ class _GatewayNodeMixin:
             part.network = network
         for pdo_map in list(node.tpdo.map.values()) + list(node.rpdo.map.values()):
             pdo_map.wait_for_reception = _refuse_reception  # instance only
+        node.emcy.wait = _refuse_emcy
 
     @property
     def epos_client(self) -> EposClient:
@@ -206,6 +210,10 @@ class _GatewayNodeMixin:
 
 def _refuse_reception(timeout: float = 10) -> float:
     raise _limitation("PDO reception")
+
+
+def _refuse_emcy(emcy_code: Optional[int] = None, timeout: float = 10) -> Any:
+    raise _limitation("EMCY reception")
 
 
 class EposRemoteNode(_GatewayNodeMixin, canopen.RemoteNode):

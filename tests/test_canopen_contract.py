@@ -179,3 +179,9 @@ def test_state_machine_and_absolute_move(node402: BaseNode402) -> None:
     assert n.sdo["Position actual value"].raw == target
     n.state = "SWITCH ON DISABLED"
     assert n.state == "SWITCH ON DISABLED"
+
+
+def test_domain_write_of_4_bytes_or_less(node: canopen.RemoteNode) -> None:
+    """canopen forces segmented transfers for DOMAIN; small ones still go through."""
+    node.sdo.download(0x607A, 0, (77).to_bytes(4, "little"), force_segment=True)
+    assert node.sdo[0x607A].raw == 77

@@ -57,3 +57,23 @@ def test_threads_share_one_node() -> None:
             directions.append(record.direction)
     assert len(directions) >= 2 * 60 * 2 * 3
     assert directions == [Direction.TX, Direction.RX] * (len(directions) // 2)
+
+
+def test_gateway_limitations_are_named() -> None:
+    import pytest
+
+    from epos_link.canopen_adapter import GatewayLimitationError
+    from epos_link.simulator.transport import open_sim
+
+    with EposClient(open_sim("sim://?drives=2")) as client:
+        node = canopen_adapter.connect_node(client, 2)
+        node.pdo.read()
+        for action, what in [(lambda: node.tpdo[1].transmit(), "PDO"),
+                             (lambda: node.tpdo[1].wait_for_reception(0.1), "PDO reception"),
+                             (lambda: node.emcy.wait(timeout=0.1), "EMCY"),
+                             (lambda: node.nmt.wait_for_heartbeat(0.1), "heartbeat"),
+                             (lambda: node.network.sync.transmit(), "SYNC"),
+                             (lambda: node.sdo.download(0x1008, 0, b"123456"), "segmented")]:
+            with pytest.raises(GatewayLimitationError, match=what):
+                action()
+        node.nmt.state = "OPERATIONAL"  # NMT goes through SendNMTService

@@ -55,3 +55,18 @@ def test_port_in_use_is_a_message() -> None:
         port = s.getsockname()[1]
         out = cli("sim", "--tcp", f"127.0.0.1:{port}")
     assert out.returncode == 2 and "cannot listen" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("args", [
+    ["read", "usb://?index=-1", "0", "0x1000", "0"],
+    ["read", "sim://", "0", "0x1000", "0", "--baud", "99999999999"],
+    ["read", "sim://", "0", "0x1000", "0", "--baud", "0"],
+    ["sim", "--delay", "nan"],
+    ["sim", "--delay", "inf"],
+    ["decode", "--file", sys.executable],
+    ["read", f"replay://{sys.executable}", "0", "0x1000", "0"],
+])
+def test_more_bad_input_is_a_message(args: list[str]) -> None:
+    out = cli(*args)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "Traceback" not in out.stderr

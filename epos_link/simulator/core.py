@@ -20,13 +20,14 @@ from typing import Any, Callable, Iterable, Optional
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from ..codes import NmtCommand
+from ..codes import ErrorCode, NmtCommand
 from .device import Abort, DeviceProtocol
 from .drive import Drive
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
 
 _channels = itertools.count(1)
+NMT_SPECIFIERS = frozenset(int(c) for c in NmtCommand)
 NODE_ID_OBJECT = 0x2000  # maxon: Node-ID (the DIP switch value on a real EPOS4)
 HOME_POSITION = 0x30B0
 
@@ -135,6 +136,10 @@ class Epos4Simulator:
     def nmt(self, node: int, command: int) -> None:
         # SendNMTService goes to the CAN bus (node 0 = all nodes) and to this
         # device itself when it is addressed.
+        if not 0 <= node <= 127:
+            raise Abort(ErrorCode.GENERAL_PARAMETER_ERROR)  # no such CANopen node id
+        if command not in NMT_SPECIFIERS:
+            raise Abort(ErrorCode.COMMAND_UNKNOWN)  # not a CS of Table 3-14
         if node == self.node_id:
             self.own.nmt(command)
         elif self.gateway is not None:

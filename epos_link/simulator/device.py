@@ -38,6 +38,9 @@ from ..messages import (
 )
 
 
+FEED_SLICE = 64 * 1024
+
+
 class Abort(Exception):
     """An object access failed with a CiA 301 abort code."""
 
@@ -104,8 +107,14 @@ class DeviceProtocol:
         self.decoder.reset()
 
     def receive(self, data: bytes) -> list[bytes]:
-        self.decoder.feed(data)
         out: list[bytes] = []
+        # In slices, answered in between: the decoder bounds what it holds.
+        for start in range(0, len(data), FEED_SLICE):
+            self.decoder.feed(data[start:start + FEED_SLICE])
+            self._answer(out)
+        return out
+
+    def _answer(self, out: list[bytes]) -> None:
         while True:
             try:
                 frame = self.decoder.next_frame()
@@ -117,7 +126,7 @@ class DeviceProtocol:
                 self._report(exc)
                 continue
             if frame is NEED_DATA:
-                return out
+                return
             try:
                 request = decode_request(frame)  # type: ignore[arg-type]
             except MessageFormatError as exc:

@@ -32,6 +32,17 @@ _RESPONSE_DOWNLOAD = 0x60
 _RESPONSE_ABORT = 0x80
 
 
+class _GatewaySdoClient(SdoClient):
+    """canopen's SDO client, minus its error log on abort: an absent node is an
+    expected answer here (0x05040000 back to the host), not an error."""
+
+    def abort(self, abort_code: int = 0x08000000) -> None:
+        request = bytearray(8)
+        request[0] = _RESPONSE_ABORT  # client abort: command specifier 0x80 (CiA 301 7.2.4.3.17)
+        struct.pack_into("<L", request, 4, abort_code)
+        self.send_request(request)
+
+
 class CanGateway:
     """Forwards object access for remote nodes as SDO on a canopen Network."""
 
@@ -46,7 +57,7 @@ class CanGateway:
             raise Abort(0x06040043)  # no such CANopen node id: general parameter error
         client = self._clients.get(node)
         if client is None:
-            client = SdoClient(0x600 + node, 0x580 + node, canopen.ObjectDictionary())
+            client = _GatewaySdoClient(0x600 + node, 0x580 + node, canopen.ObjectDictionary())
             client.RESPONSE_TIMEOUT = self.timeout  # instance attribute: this gateway's timeout
             client.MAX_RETRIES = 1
             client.network = self.network

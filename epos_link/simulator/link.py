@@ -8,6 +8,7 @@ One host at a time, like the real device.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import random
 import select
@@ -48,8 +49,8 @@ class LinkOptions:
                 raise ValueError(f"{name} must be a probability between 0 and 1, got {value}")
         if self.baud is not None and self.baud <= 0:
             raise ValueError("baud must be positive")
-        if self.delay < 0:
-            raise ValueError("delay must not be negative")
+        if not math.isfinite(self.delay) or self.delay < 0:
+            raise ValueError("delay must be a finite, non-negative number of seconds")
 
 
 class FaultInjector:

@@ -6,6 +6,7 @@ optional faults are the same as the pty/TCP links'.
 """
 from __future__ import annotations
 
+import time
 from collections import deque
 from typing import Any, Optional
 from urllib.parse import parse_qs, urlsplit
@@ -38,7 +39,10 @@ class SimTransport(Transport):
         if self._closed:
             raise TransportError("sim:// transport is closed")
         if not self._pending:
-            return b""  # nothing will come: answers are produced synchronously on write
+            # Answers are produced on write, so nothing more will come; honour
+            # the timeout anyway (a dropped answer must cost the caller its wait).
+            time.sleep(max(0.0, timeout))
+            return b""
         chunk = self._pending.popleft()
         if len(chunk) > max_bytes:
             self._pending.appendleft(chunk[max_bytes:])

@@ -59,6 +59,13 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def baud_rate(text: str) -> int:
+    value = parse_int(text)
+    if not 50 <= value <= 12_000_000:
+        raise argparse.ArgumentTypeError(f"baud rate {value} is outside 50..12000000")
+    return value
+
+
 def add_url(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("url", metavar="URL", help=URL_HELP)
 
@@ -69,7 +76,7 @@ def add_link_options(parser: argparse.ArgumentParser) -> None:
                        help=f"deadline per request (default {DEFAULT_TIMEOUT:g}, the EPOS4 frame timeout)")
     group.add_argument("--retries", type=non_negative_int, default=DEFAULT_RETRIES, metavar="N",
                        help=f"retries after communication errors (default {DEFAULT_RETRIES})")
-    group.add_argument("--baud", type=parse_int, default=None, metavar="BAUD",
+    group.add_argument("--baud", type=baud_rate, default=None, metavar="BAUD",
                        help="serial baud rate (default 115200)")
     group.add_argument("--gateway-id", type=parse_int, default=None, metavar="NODE",
                        help="the connected EPOS4's own node id (allows segmented writes to it)")

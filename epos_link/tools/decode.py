@@ -235,6 +235,10 @@ def _load(args: argparse.Namespace) -> Iterator[Decoded]:
 def run(args: argparse.Namespace) -> int:
     try:
         lines = list(_load(args))
+    except UnicodeDecodeError:
+        print("epos-link decode: the file is not text: a capture file is hex text "
+              "(see epos_link/capture.py)", file=sys.stderr)
+        return 2
     except (OSError, CaptureFormatError) as exc:
         print(f"epos-link decode: {exc}", file=sys.stderr)
         return 2

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -36,6 +37,36 @@ def _probability(text: str) -> float:
     return value
 
 
+def _node_id(text: str) -> int:
+    try:
+        node = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a node id: {text!r}") from None
+    if not 1 <= node <= 127:
+        raise argparse.ArgumentTypeError(f"node ids are 1..127, got {node}")
+    return node
+
+
+def _milliseconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"a delay is a finite, non-negative number of ms, got {text}")
+    return value
+
+
+def _baud(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a baud rate: {text!r}") from None
+    if not 50 <= value <= 12_000_000:
+        raise argparse.ArgumentTypeError(f"baud rate {value} is outside 50..12000000")
+    return value
+
+
 def _node_list(text: str) -> list[int]:
     try:
         nodes = [int(n, 0) for n in text.split(",") if n.strip()]
@@ -51,16 +82,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
     where.add_argument("--tcp", type=_host_port, metavar="HOST:PORT",
                        help="serve on TCP (reach it with socket://HOST:PORT); port 0 picks one")
-    parser.add_argument("--node-id", type=int, default=1, choices=range(1, 128), metavar="1..127",
+    parser.add_argument("--node-id", type=_node_id, default=1, metavar="1..127",
                         help="the simulated EPOS4's own node id (default 1)")
     parser.add_argument("--drives", type=_node_list, default=[], metavar="2,3",
                         help="node ids of simulated drives behind the CAN gateway")
-    parser.add_argument("--baud", type=int, default=None, help="pace replies like a UART at N baud")
+    parser.add_argument("--baud", type=_baud, default=None, help="pace replies like a UART at N baud")
     parser.add_argument("--drop", type=_probability, default=0.0, metavar="P",
                         help="drop each reply byte with probability P")
     parser.add_argument("--corrupt", type=_probability, default=0.0, metavar="P",
                         help="corrupt each reply byte with probability P")
-    parser.add_argument("--delay", type=float, default=0.0, metavar="MS",
+    parser.add_argument("--delay", type=_milliseconds, default=0.0, metavar="MS",
                         help="delay each reply by MS milliseconds")
     parser.add_argument("--silent", action="store_true", help="read requests, never answer")
     parser.add_argument("--seed", type=int, default=None, help="seed of the fault generator")
@@ -77,12 +108,6 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
     if not args.verbose:
         # An absent node's SDO timeout is an expected answer (0x05040000), not an error to log.
         logging.getLogger("canopen").setLevel(logging.CRITICAL)
-    if args.baud is not None and args.baud <= 0:
-        print("epos-link sim: --baud must be positive", file=sys.stderr)
-        return 2
-    if args.delay < 0:
-        print("epos-link sim: --delay must not be negative", file=sys.stderr)
-        return 2
     options = LinkOptions(baud=args.baud, drop=args.drop, corrupt=args.corrupt,
                           delay=args.delay / 1000.0, silent=args.silent, seed=args.seed)
     sim = Epos4Simulator(args.node_id, args.drives)
@@ -110,7 +135,7 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
     print(f"listening on {where}", flush=True)
     if args.drives:
         print(f"drives behind the gateway: {', '.join(map(str, args.drives))} "
-              f"(CAN channel {sim.channel})", flush=True)
+              f"(on the in-process python-can virtual channel {sim.channel})", flush=True)
     if ready is not None:
         ready.set()
     try:

@@ -141,7 +141,7 @@ def open_replay(url: str, **_options: Any) -> ReplayTransport:
     try:
         with open(path, encoding="utf-8") as fh:
             capture = read_capture(fh)
-    except OSError as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise TransportError(f"cannot open {url}: {exc}") from exc
     return ReplayTransport(capture, url=url)
 

@@ -194,6 +194,8 @@ class SerialTransport(Transport):
 
 def open_serial(url: str, *, baudrate: Optional[int] = None, **options: Any) -> SerialTransport:
     """Open ``url`` with ``serial.serial_for_url`` (115200 8N1 unless ``baudrate`` is given)."""
+    if baudrate is not None and not 50 <= baudrate <= 12_000_000:
+        raise TransportError(f"baud rate {baudrate} is outside 50..12000000")
     return SerialTransport(url, baudrate=baudrate or DEFAULT_BAUDRATE, **options)
 
 

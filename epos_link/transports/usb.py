@@ -311,6 +311,8 @@ def open_usb(url: str, *, backend: Any = None, find: Optional[Callable[..., Any]
         index = int(query.get("index", ["0"])[-1])
     except ValueError:
         raise TransportError(f"{url}: index must be a number") from None
+    if index < 0:
+        raise TransportError(f"{url}: index counts EPOS4 units from 0, got {index}")
     return UsbTransport(serial=serial, index=index, backend=backend, find=find, url=url)
 
 
