@@ -17,17 +17,28 @@ has the one place that turns them into replies
 
 A move of an axis with a slave (commands 29/30) also moves the slave with its
 direction; command 90 moves the configured internal axes. These *companion*
-jobs run on their own buses concurrently with the main one; the reply is ACK
-only if all of them succeed.
+jobs run on their own buses; the reply is ACK only if all of them succeed. A
+move that starts motion is *gated* (:func:`steps`) so that no axis moves
+unless every one can:
+
+1. every companion's drive must be enabled (read in parallel), else NAK and
+   nothing moved;
+2. the main move, and only if the drive accepted it,
+3. the companions' moves, in parallel;
+4. if one of them failed: halt every axis of the request, then NAK.
+
+A stop (S00=8, S90=0) is not gated: every axis is told to stop, whatever
+the others answer.
 """
 from __future__ import annotations
 
 import asyncio
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import metadata
-from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import (Any, Callable, Dict, Generator, List, Mapping, Optional, Sequence, Tuple,
+                    Union)
 
 from .axes import AxisConfig, AxisTable, parameter_spec
 from .parameters import ParameterStore
@@ -64,6 +75,9 @@ class Job:
     blocking: bool = False  # no drive, but file I/O (state file): default executor
     ops: Optional[AxisOps] = None
     companions: Tuple["Job", ...] = field(default_factory=tuple)
+    gated: bool = False  # companions start only after this job succeeded (see steps())
+    precheck: Tuple["Job", ...] = field(default_factory=tuple)  # before anything moves
+    stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
 
     def __call__(self) -> bytes:
         try:
@@ -72,6 +86,48 @@ class Job:
             if self.ops is not None:
                 note_failure(self.ops, exc)
             raise
+
+
+Outcome = Union[bytes, BaseException]
+Steps = Generator[Tuple[Job, ...], List[Outcome], bytes]
+
+
+def _first_failure(outcomes: Sequence[Outcome]) -> Optional[BaseException]:
+    return next((o for o in outcomes if isinstance(o, BaseException)), None)
+
+
+def steps(job: Job) -> Steps:
+    """The order in which a job and its companions run, without any I/O.
+
+    Yields batches of jobs to run in parallel and receives their outcomes (the
+    reply bytes or the exception, in batch order); returns the reply or raises
+    the first failure. :meth:`Engine.run` (bus workers) and
+    :meth:`Engine.execute_sync` (caller's thread) are thin drivers over it.
+    """
+    if not job.gated:
+        outcomes = yield (job, *job.companions)
+        failure = _first_failure(outcomes)
+        if failure is not None:
+            raise failure
+        return outcomes[0]  # type: ignore[return-value]
+    if job.precheck:
+        failure = _first_failure((yield job.precheck))
+        if failure is not None:
+            raise failure  # a companion cannot move: nothing has moved
+    [outcome] = yield (job,)
+    if isinstance(outcome, BaseException):
+        raise outcome  # the main axis refused: its companions stay where they are
+    failure = _first_failure((yield job.companions))
+    if failure is not None:
+        # Some axes of the request started: halt them all (a halt of an axis
+        # that is not enabled is a no-op), then report the first failure.
+        halts = tuple(j.stop for j in (job, *job.companions) if j.stop is not None)
+        for halt, result in zip(halts, (yield halts)):
+            if isinstance(result, BaseException):
+                log.error("axis %s: halt after a failed companion move failed: %s",
+                          halt.ops.addr if halt.ops else "?", result)
+        raise failure
+    return outcome
 
 
 class Engine:
@@ -146,19 +202,28 @@ class Engine:
                             request.value)
         ack = format_write_reply(request.axis, request.cmd, Status.ACK)
         companions: Tuple[Job, ...] = ()
+        stop: Optional[Job] = None
+        how = int(value) if spec.number in (0, 90) else None
         if spec.number == 90:
             plan, companions = self._plan_combined_move(request, int(value))
         else:
             plan = ops.plan_write(spec, value)
             if spec.number == 0:
                 companions = self._plan_slave_move(request, ops, int(value))
+                stop = self._halt_job(request, ops)
 
         def run() -> bytes:
             plan()
             return ack
         bus = self._bus(ops, spec)
         blocking = bus is None and self.params.state_file is not None
-        return Job(request, run, bus=bus, blocking=blocking, ops=ops, companions=companions)
+        # A stop (00=8, 90=0) is never gated: every axis must be told.
+        stopping = (spec.number, how) in ((0, 8), (90, 0))
+        gated = bool(companions) and not stopping
+        precheck = tuple(self._axis_job(request, c.ops, self._require_enabled(c.ops))
+                         for c in companions if c.ops is not None) if gated else ()
+        return Job(request, run, bus=bus, blocking=blocking, ops=ops, companions=companions,
+                   gated=gated, precheck=precheck, stop=stop)
 
     def _plan_slave_move(self, request: Request, master: AxisOps, how: int) -> Tuple[Job, ...]:
         """Spec 29/30: the slave follows the master's move, with its direction."""
@@ -193,11 +258,24 @@ class Engine:
             jobs.append(self._companion(request, ops, plan))
         return (lambda: None), tuple(jobs)
 
-    def _companion(self, request: Request, ops: AxisOps, plan: Callable[[], None]) -> Job:
+    def _axis_job(self, request: Request, ops: AxisOps, plan: Callable[[], Any]) -> Job:
         def run() -> bytes:
             plan()
             return b""
         return Job(request, run, bus=ops.config.bus, ops=ops)
+
+    def _companion(self, request: Request, ops: AxisOps, plan: Callable[[], None]) -> Job:
+        return replace(self._axis_job(request, ops, plan), stop=self._halt_job(request, ops))
+
+    def _halt_job(self, request: Request, ops: AxisOps) -> Optional[Job]:
+        if ops.drive is None:
+            return None
+        return self._axis_job(request, ops, ops.drive.halt)
+
+    @staticmethod
+    def _require_enabled(ops: AxisOps) -> Callable[[], Any]:
+        assert ops.drive is not None
+        return ops.drive.require_enabled
 
     # -- execution -----------------------------------------------------------------------
 
@@ -208,13 +286,19 @@ class Engine:
     async def run(self, job: Job) -> bytes:
         if job.bus is None and not job.blocking and not job.companions:
             return job()  # nothing to wait for: answered on the loop
-        futures = [self._submit(j) for j in (job, *job.companions)]
-        results = await asyncio.wait_for(
-            asyncio.gather(*futures, return_exceptions=True), self.job_timeout)
-        for result in results:
-            if isinstance(result, BaseException):
-                raise result
-        return results[0]
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.job_timeout
+        plan = steps(job)
+        try:
+            batch = next(plan)
+            while True:
+                futures = [self._submit(j) for j in batch]
+                outcomes = await asyncio.wait_for(
+                    asyncio.gather(*futures, return_exceptions=True),
+                    max(deadline - loop.time(), 0.0))
+                batch = plan.send(list(outcomes))
+        except StopIteration as done:
+            return done.value  # type: ignore[no-any-return]
 
     def _submit(self, job: Job) -> "asyncio.Future[bytes]":
         loop = asyncio.get_running_loop()
@@ -231,9 +315,13 @@ class Engine:
 
     def execute_sync(self, request: Request) -> bytes:
         """Run a request in the caller's thread (tests, tools); raises on failure."""
-        job = self.prepare(request)
-        results = [j() for j in (job, *job.companions)]
-        return results[0]
+        plan = steps(self.prepare(request))
+        try:
+            batch = next(plan)
+            while True:
+                batch = plan.send([_outcome(j) for j in batch])
+        except StopIteration as done:
+            return done.value  # type: ignore[no-any-return]
 
     def close(self, wait: bool = True) -> None:
         """Finish the transfers in flight (``wait``), then close the backends."""
@@ -244,6 +332,13 @@ class Engine:
                 backend.close()
             except Exception:  # closing one backend must not keep the others open
                 log.exception("closing backend %r failed", backend)
+
+
+def _outcome(job: Job) -> Outcome:
+    try:
+        return job()
+    except Exception as exc:
+        return exc
 
 
 def build_engine(table: AxisTable, *, params: Optional[ParameterStore] = None,

@@ -563,3 +563,82 @@ def test_one_bus_is_serialised_buses_run_in_parallel() -> None:
     same, other, inline = asyncio.run(scenario())
     engine.close()
     assert same >= 0.39 and other < 0.35 and inline < 0.1
+
+
+# --- companions (29/30 slave, 90 combined): nothing moves unless every axis can ----------
+
+
+def run_async(engine: Engine, line: str) -> Reply:
+    """One request through the real async path (Engine.execute, bus worker threads)."""
+    request = parse_request(line.encode())
+
+    async def go() -> bytes:
+        try:
+            return await engine.execute(request)
+        except Exception as exc:
+            return format_error_reply(exc, request)
+    return decode_reply(asyncio.run(go()))
+
+
+def test_slave_does_not_move_when_its_master_refuses() -> None:
+    engine, nodes = make()
+    slave = enabled(engine, nodes, 2)  # the master (axis 1) is NOT enabled
+    ok(engine, "1S29=2")
+    ok(engine, "1S02=4")
+    slave.log.clear()
+    assert run_async(engine, "1S00=1").status is Status.NAK
+    assert downloads(slave, 0x607A) == [] and controlwords(slave) == []
+    assert ok(engine, "2R12") == "0"
+    engine.close()
+
+
+def test_master_does_not_move_when_its_slave_is_not_enabled() -> None:
+    engine, nodes = make()
+    master = enabled(engine, nodes, 1)  # the slave (axis 2) is NOT enabled
+    ok(engine, "1S29=2")
+    ok(engine, "1S02=4")
+    master.log.clear()
+    assert run_async(engine, "1S00=1").status is Status.NAK
+    assert downloads(master, 0x607A) == [] and controlwords(master) == []
+    assert ok(engine, "1R12") == "0"
+    engine.close()
+
+
+def test_master_is_halted_when_its_slave_fails_during_the_move() -> None:
+    engine, nodes = make()
+    master = enabled(engine, nodes, 1)
+    enabled(engine, nodes, 2)
+    stuck = NoAckNode(2)  # enabled, but never acknowledges the set-point
+    ok(engine, "1S29=2")
+    ok(engine, "1S02=4")
+    stuck.state = "OE"
+    engine.axes[2].port.node = stuck  # type: ignore[union-attr]
+    master.log.clear()
+    assert run_async(engine, "1S00=1").status is Status.NAK
+    assert master.values[(0x6040, 0)] & 0x100  # halt (cw bit 8)
+    assert stuck.values[(0x6040, 0)] & 0x100  # and the slave too
+    engine.close()
+
+
+def test_stop_halts_the_slave_even_when_the_master_is_absent() -> None:
+    engine, nodes = make()
+    slave = enabled(engine, nodes, 2)
+    ok(engine, "1S29=2")
+    nodes[1].absent = True
+    assert run_async(engine, "1S00=8").status is Status.NAK
+    assert slave.values[(0x6040, 0)] & 0x100
+    engine.close()
+
+
+def test_combined_move_90_moves_nothing_when_one_axis_is_not_enabled() -> None:
+    engine, nodes = make([
+        {"internal": True, "node_id": 1, "position_factor": 10},
+        {"internal": True, "node_id": 2, "position_factor": 10},
+    ])
+    first = enabled(engine, nodes, 1)  # axis 2 is NOT enabled
+    ok(engine, "1S02=1")
+    ok(engine, "2S02=1")
+    first.log.clear()
+    assert run_async(engine, "1S90=1").status is Status.NAK
+    assert downloads(first, 0x607A) == [] and ok(engine, "1R12") == "0"
+    engine.close()
