@@ -8,6 +8,13 @@ file, written atomically (temporary file, fsync, rename) after every change
 and overlaid on the table at start, as the controller keeps them across
 restarts. Only S-command values go to the file, so later edits of the TOML
 take effect for the rest.
+
+A state file that cannot be written (disk full, directory gone, no rights)
+does not undo the change and does not turn the reply into NAK: the value is
+in the arrays, and for a drive parameter in the drive, so the command *was*
+executed (spec 2.2.2: NAK means not executed). The failure is logged at
+ERROR with the file's name every time; the next successful write persists
+the whole snapshot, so nothing is lost once the file is writable again.
 """
 from __future__ import annotations
 
@@ -86,7 +93,13 @@ class ParameterStore:
             return
         with self._file_lock:
             if version > self._written:
-                self._save(snapshot)
+                try:
+                    self._save(snapshot)
+                except OSError as exc:
+                    log.error("state file %s: cannot write it (%s); axis %d parameter %d = %d "
+                              "is in effect but NOT persisted: it is lost at restart unless a "
+                              "later write succeeds", self.state_file, exc, addr, cmd, stored)
+                    return
                 self._written = version
 
     def set_user(self, addr: int, cmd: int, user: Number) -> int:

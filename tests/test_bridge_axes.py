@@ -199,3 +199,14 @@ def test_concurrent_sets_leave_the_newest_state(tmp_path: Path) -> None:
         th.join()
     again = ParameterStore(t, path)
     assert [again.get(1, c) for c in (20, 21, 54)] == [49, 49, 49]
+
+
+def test_failed_state_file_write_keeps_the_value_and_logs(tmp_path: Path,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    blocker = tmp_path / "gone"
+    store = ParameterStore(AxisTable.from_mapping(table()), blocker / "s.json")
+    blocker.write_text("x")  # after start: the state file's directory cannot be created
+    with caplog.at_level("ERROR", logger="tcp_bridge.parameters"):
+        store.set_user(1, 22, -1)  # does not raise: the change took effect
+    assert store.get(1, 22) == -1
+    assert "NOT persisted" in caplog.text and str(blocker / "s.json") in caplog.text

@@ -642,3 +642,19 @@ def test_combined_move_90_moves_nothing_when_one_axis_is_not_enabled() -> None:
     assert run_async(engine, "1S90=1").status is Status.NAK
     assert downloads(first, 0x607A) == [] and ok(engine, "1R12") == "0"
     engine.close()
+
+
+def test_failed_state_file_write_is_still_ack(tmp_path: Any) -> None:
+    # The drive and the arrays hold the new value; only its persistence failed
+    # (logged), so NAK ("nothing changed", spec 2.2.2) would be a lie.
+    blocker = tmp_path / "gone"
+    t = AxisTable.from_mapping({"bridge": {**FAST, "state_file": str(blocker / "s.json")},
+                                "bus": {"can1": {"backend": "instant"}},
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000}]})
+    engine = build_engine(t)
+    blocker.write_text("x")  # after start: the directory cannot be created
+    assert run_async(engine, "1S05=3").status is Status.ACK  # drive parameter (6081h)
+    assert engine.backends[0].nodes[1].values[(0x6081, 0)] == 3000
+    assert run_async(engine, "1S22=-1").status is Status.ACK  # internal parameter
+    assert run_async(engine, "1R22").value == "-1"
+    engine.close()
