@@ -98,37 +98,51 @@ class BridgeServer:
         conn = _Connection(task, peer)
         self._connections.add(conn)
         log.info("client %s connected", peer)
-        splitter = LineSplitter(self.options.max_line)
         try:
-            while not self._closing:
-                try:
-                    data = await asyncio.wait_for(reader.read(READ_SIZE), self.options.idle_timeout)
-                except asyncio.TimeoutError:
-                    log.info("client %s idle for %g s; closing", peer, self.options.idle_timeout)
-                    break
-                if not data:
-                    break  # EOF; a half-received request is dropped unanswered
-                for item in splitter.feed(data):
-                    conn.busy = True
-                    try:
-                        writer.write(await self._answer(item))
-                    finally:
-                        conn.busy = False
-                    if self._closing:
-                        break
-                await writer.drain()
+            await self._converse(conn, reader, writer)
         except (ConnectionError, OSError) as exc:
             log.info("client %s: %s", peer, exc)
         except asyncio.CancelledError:
             pass  # shutdown of an idle connection
         finally:
-            self._connections.discard(conn)
+            self._connections.discard(conn)  # the slot is free before the close handshake
             writer.close()
             try:
                 await asyncio.wait_for(writer.wait_closed(), 1.0)
             except (ConnectionError, OSError, asyncio.TimeoutError, asyncio.CancelledError):
                 pass
             log.info("client %s disconnected", peer)
+
+    async def _converse(self, conn: _Connection, reader: asyncio.StreamReader,
+                        writer: asyncio.StreamWriter) -> None:
+        """Read requests and answer them in order until EOF, idle timeout, or shutdown."""
+        splitter = LineSplitter(self.options.max_line)
+        while not self._closing:
+            try:
+                data = await asyncio.wait_for(reader.read(READ_SIZE), self.options.idle_timeout)
+            except asyncio.TimeoutError:
+                log.info("client %s idle for %g s; closing", conn.peer, self.options.idle_timeout)
+                return
+            if not data:
+                return  # EOF; a half-received request is dropped unanswered
+            items = splitter.feed(data)
+            for done, item in enumerate(items):
+                if writer.is_closing():
+                    # The client went away (reset, or a failed write): the rest of
+                    # its pipeline would only be executed for nobody.
+                    log.info("client %s gone; %d pipelined requests dropped",
+                             conn.peer, len(items) - done)
+                    return
+                conn.busy = True
+                try:
+                    reply = await self._answer(item)
+                finally:
+                    conn.busy = False
+                if not writer.is_closing():
+                    writer.write(reply)
+                if self._closing:
+                    break
+            await writer.drain()
 
     async def _answer(self, item: Line) -> bytes:
         """The one place where an exception becomes a reply (CAN or NAK)."""

@@ -9,6 +9,7 @@ import asyncio
 import logging
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -286,6 +287,45 @@ def test_close_finishes_the_request_in_flight() -> None:
             r.connect()
         busy.close()
         idle.close()
+    finally:
+        r.stop()
+
+
+class SteadyNode(FakeNode):
+    """Each SDO takes 5 ms, so a pipeline of 200 requests lasts a second."""
+
+    def upload(self, index: int, subindex: int) -> bytes:
+        time.sleep(0.005)
+        return super().upload(index, subindex)
+
+
+def reset(sock: socket.socket) -> None:
+    """Close with RST (SO_LINGER 0), as a crashed or killed client does."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    sock.close()
+
+
+def test_pipelined_requests_of_a_vanished_client_are_dropped(caplog: pytest.LogCaptureFixture) -> None:
+    table = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant"}},
+                                    "axis": [{"node_id": 1}]})
+    node = SteadyNode(1)
+    r = Running(Engine(table, {1: node}), max_connections=2)
+    try:
+        with caplog.at_level(logging.INFO, logger="asyncio"):
+            for _ in range(3):
+                s = r.connect()
+                s.sendall(b"1R10\r" * 200)
+                time.sleep(0.05)  # the first requests are in flight
+                reset(s)
+                deadline = time.monotonic() + 0.5  # 200 requests would take 1 s
+                while r.server._connections:
+                    assert time.monotonic() < deadline, "the slot of a vanished client is held"
+                    time.sleep(0.01)
+        assert len(node.log) < 3 * 40  # not 3 * 200 SDO transfers
+        assert "socket.send() raised exception" not in caplog.text
+        with r.connect() as s:  # both slots free again
+            with r.connect() as t:
+                assert exchange(s, b"1R86") == exchange(t, b"1R86") == [named("1 R 86=0", Status.ACK)]
     finally:
         r.stop()
 
