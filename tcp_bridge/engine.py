@@ -71,8 +71,7 @@ class Job:
 
     request: Request
     run: Callable[[], bytes]
-    bus: Optional[str] = None  # worker to run on; None: no drive involved
-    blocking: bool = False  # no drive, but file I/O (state file): default executor
+    bus: Optional[str] = None  # worker to run on; None: no drive involved, run on the loop
     ops: Optional[AxisOps] = None
     companions: Tuple["Job", ...] = field(default_factory=tuple)
     gated: bool = False  # companions start only after this job succeeded (see steps())
@@ -216,13 +215,12 @@ class Engine:
             plan()
             return ack
         bus = self._bus(ops, spec)
-        blocking = bus is None and self.params.state_file is not None
         # A stop (00=8, 90=0) is never gated: every axis must be told.
         stopping = (spec.number, how) in ((0, 8), (90, 0))
         gated = bool(companions) and not stopping
         precheck = tuple(self._axis_job(request, c.ops, self._require_enabled(c.ops))
                          for c in companions if c.ops is not None) if gated else ()
-        return Job(request, run, bus=bus, blocking=blocking, ops=ops, companions=companions,
+        return Job(request, run, bus=bus, ops=ops, companions=companions,
                    gated=gated, precheck=precheck, stop=stop)
 
     def _plan_slave_move(self, request: Request, master: AxisOps, how: int) -> Tuple[Job, ...]:
@@ -284,7 +282,7 @@ class Engine:
         return await self.run(self.prepare(request))
 
     async def run(self, job: Job) -> bytes:
-        if job.bus is None and not job.blocking and not job.companions:
+        if job.bus is None and not job.companions:
             return job()  # nothing to wait for: answered on the loop
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.job_timeout
@@ -304,8 +302,6 @@ class Engine:
         loop = asyncio.get_running_loop()
         if job.bus is not None:
             return loop.run_in_executor(self._executors[job.bus], job)
-        if job.blocking:
-            return loop.run_in_executor(None, job)
         future: asyncio.Future[bytes] = loop.create_future()
         try:
             future.set_result(job())
@@ -324,9 +320,10 @@ class Engine:
             return done.value  # type: ignore[no-any-return]
 
     def close(self, wait: bool = True) -> None:
-        """Finish the transfers in flight (``wait``), then close the backends."""
+        """Finish the transfers in flight (``wait``), write the state file, close the backends."""
         for executor in self._executors.values():
             executor.shutdown(wait=wait, cancel_futures=True)
+        self.params.close()
         for backend in self.backends:
             try:
                 backend.close()

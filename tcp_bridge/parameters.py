@@ -9,6 +9,12 @@ and overlaid on the table at start, as the controller keeps them across
 restarts. Only S-command values go to the file, so later edits of the TOML
 take effect for the rest.
 
+The file is written by one background thread (:class:`StateFileWriter`), never
+by the caller: a bus worker that stores a parameter must not wait for an
+fsync. Snapshots that pile up while a write is in progress are coalesced,
+the newest wins; :meth:`ParameterStore.close` (called by the engine at
+shutdown) writes the last one.
+
 A state file that cannot be written (disk full, directory gone, no rights)
 does not undo the change and does not turn the reply into NAK: the value is
 in the arrays, and for a drive parameter in the drive, so the command *was*
@@ -24,7 +30,7 @@ import os
 import tempfile
 import threading
 from pathlib import Path
-from typing import Dict, Final, Optional
+from typing import Callable, Dict, Final, Optional, Tuple
 
 from .axes import (DEFAULTS, PARAMETER_NAMES, AxisTable, ConfigError, DeviceCode, from_stored,
                    to_stored)
@@ -49,9 +55,7 @@ class ParameterStore:
         self.table = table
         self.state_file = state_file if state_file is not None else table.settings.state_file
         self._lock = threading.Lock()  # the arrays; held briefly (the event loop reads too)
-        self._file_lock = threading.Lock()  # the state file; held while writing it
         self._version = 0  # of the arrays' S-command values
-        self._written = 0  # version in the state file
         self._base: Dict[int, Dict[int, int]] = {}
         for addr, axis in table.axes.items():
             values = {19: int(axis.device)}
@@ -61,8 +65,10 @@ class ParameterStore:
                     values[cmd] = to_stored(COMMANDS[cmd], user, axis.position_factor)
             self._base[addr] = values
         self._overrides: Dict[int, Dict[int, int]] = {addr: {} for addr in table.axes}
+        self._writer: Optional[StateFileWriter] = None
         if self.state_file is not None:
             self._load()
+            self._writer = StateFileWriter(self._save, str(self.state_file))
 
     # -- access ---------------------------------------------------------------
 
@@ -79,28 +85,23 @@ class ParameterStore:
         return from_stored(COMMANDS[cmd], stored, self.table.axes[addr].position_factor)
 
     def set(self, addr: int, cmd: int, stored: int) -> None:
-        """Store a value set by an S command and persist the state file.
-
-        The file is written outside the arrays' lock, so readers never wait for
-        a disk; of two concurrent writers the newer snapshot wins.
-        """
+        """Store a value set by an S command; the state file follows in the background."""
         with self._lock:
             self._overrides[addr][cmd] = int(stored)
             self._version += 1
             version = self._version
             snapshot = {a: dict(v) for a, v in self._overrides.items() if v}
-        if self.state_file is None:
-            return
-        with self._file_lock:
-            if version > self._written:
-                try:
-                    self._save(snapshot)
-                except OSError as exc:
-                    log.error("state file %s: cannot write it (%s); axis %d parameter %d = %d "
-                              "is in effect but NOT persisted: it is lost at restart unless a "
-                              "later write succeeds", self.state_file, exc, addr, cmd, stored)
-                    return
-                self._written = version
+        if self._writer is not None:
+            self._writer.submit(version, snapshot)
+
+    def flush(self, timeout: Optional[float] = None) -> bool:
+        """Wait until every value set so far was written (or failed); False on timeout."""
+        return self._writer.flush(timeout) if self._writer is not None else True
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Write the last snapshot and stop the writer thread."""
+        if self._writer is not None:
+            self._writer.close(timeout)
 
     def set_user(self, addr: int, cmd: int, user: Number) -> int:
         stored = to_stored(COMMANDS[cmd], user, self.table.axes[addr].position_factor)
@@ -175,6 +176,84 @@ class ParameterStore:
             },
         }
         write_atomically(self.state_file, json.dumps(data, indent=1) + "\n")
+
+
+Snapshot = Dict[int, Dict[int, int]]
+
+
+class StateFileWriter:
+    """One thread that writes the newest submitted snapshot; older pending ones are dropped.
+
+    A write that fails is logged at ERROR and not retried by itself: the next
+    change writes the whole state again. The thread starts with the first
+    snapshot; after :meth:`close` a late snapshot is written by the caller.
+    """
+
+    def __init__(self, write: Callable[[Snapshot], None], name: str) -> None:
+        self._write = write
+        self._name = name
+        self._cond = threading.Condition()
+        self._pending: Optional[Tuple[int, Snapshot]] = None
+        self._latest = 0  # newest version submitted
+        self._busy = False
+        self._closed = False
+        self._thread: Optional[threading.Thread] = None
+
+    def submit(self, version: int, snapshot: Snapshot) -> None:
+        with self._cond:
+            if version <= self._latest:
+                return  # a newer snapshot (which includes this change) is already queued
+            self._latest = version
+            if not self._closed:
+                self._pending = (version, snapshot)
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._run, daemon=True,
+                                                    name="state-file")
+                    self._thread.start()
+                self._cond.notify_all()
+                return
+        self._write_logged(snapshot)  # after close: nobody else will
+
+    def flush(self, timeout: Optional[float] = None) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: self._pending is None and not self._busy, timeout)
+
+    def close(self, timeout: float = 10.0) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout)
+            if thread.is_alive():
+                log.error("state file %s: still writing after %g s at shutdown", self._name,
+                          timeout)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending is not None or self._closed)
+                if self._pending is None:
+                    return  # closed, and everything is written
+                _, snapshot = self._pending
+                self._pending = None
+                self._busy = True
+            try:
+                self._write_logged(snapshot)
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def _write_logged(self, snapshot: Snapshot) -> None:
+        try:
+            self._write(snapshot)
+        except OSError as exc:
+            log.error("state file %s: cannot write it (%s); the parameters set since its last "
+                      "write are in effect but NOT persisted: they are lost at restart unless "
+                      "a later write succeeds", self._name, exc)
+        except Exception:  # a bug: never kill the writer thread
+            log.exception("state file %s: write failed", self._name)
 
 
 def write_atomically(path: Path, text: str) -> None:

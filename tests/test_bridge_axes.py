@@ -139,6 +139,7 @@ def test_state_file_persists_s_commands_only(tmp_path: Path) -> None:
     assert not path.exists()  # nothing set yet
     store.set_user(1, 22, -1)
     store.set_user(1, 41, 0.5)  # homing velocity 0.5 mm/s -> 500
+    assert store.flush(5)  # written in the background
     data = json.loads(path.read_text())
     assert data["axes"] == {"1": {"position_factor": 1000, "parameters": {"22": -1, "41": 500}}}
     again = ParameterStore(t, path)
@@ -150,7 +151,9 @@ def test_state_file_persists_s_commands_only(tmp_path: Path) -> None:
 
 def test_state_file_of_another_factor_is_ignored(tmp_path: Path) -> None:
     path = tmp_path / "s.json"
-    ParameterStore(AxisTable.from_mapping(table()), path).set_user(1, 25, 2.0)
+    first = ParameterStore(AxisTable.from_mapping(table()), path)
+    first.set_user(1, 25, 2.0)
+    first.close()
     changed = table()
     changed["axis"][0]["position_factor"] = 100
     store = ParameterStore(AxisTable.from_mapping(changed), path)
@@ -197,6 +200,7 @@ def test_concurrent_sets_leave_the_newest_state(tmp_path: Path) -> None:
         th.start()
     for th in threads:
         th.join()
+    store.close()
     again = ParameterStore(t, path)
     assert [again.get(1, c) for c in (20, 21, 54)] == [49, 49, 49]
 
@@ -208,5 +212,32 @@ def test_failed_state_file_write_keeps_the_value_and_logs(tmp_path: Path,
     blocker.write_text("x")  # after start: the state file's directory cannot be created
     with caplog.at_level("ERROR", logger="tcp_bridge.parameters"):
         store.set_user(1, 22, -1)  # does not raise: the change took effect
+        assert store.flush(5)
     assert store.get(1, 22) == -1
     assert "NOT persisted" in caplog.text and str(blocker / "s.json") in caplog.text
+
+
+def test_state_file_is_written_in_the_background_newest_snapshot_wins(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import time
+
+    import tcp_bridge.parameters as parameters
+
+    writes = []
+    real = parameters.write_atomically
+
+    def slow_disk(path: Path, text: str) -> None:
+        time.sleep(0.1)  # a slow fsync
+        writes.append(json.loads(text))
+        real(path, text)
+    monkeypatch.setattr(parameters, "write_atomically", slow_disk)
+    path = tmp_path / "s.json"
+    store = ParameterStore(AxisTable.from_mapping(table()), path)
+    start = time.monotonic()
+    for i in range(20):
+        store.set(1, 54, i)  # returns at once: the caller is a bus worker
+    assert time.monotonic() - start < 0.05
+    store.close()  # flushes
+    assert len(writes) <= 3  # coalesced, not 20 writes
+    assert writes[-1]["axes"]["1"]["parameters"] == {"54": 19}
+    assert ParameterStore(AxisTable.from_mapping(table()), path).get(1, 54) == 19

@@ -9,6 +9,7 @@ bit 8 halt); expected drive values are worked out by hand from spec 3.6.
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -658,3 +659,30 @@ def test_failed_state_file_write_is_still_ack(tmp_path: Any) -> None:
     assert run_async(engine, "1S22=-1").status is Status.ACK  # internal parameter
     assert run_async(engine, "1R22").value == "-1"
     engine.close()
+
+
+def test_a_stuck_state_file_never_stalls_the_bus(tmp_path: Any, monkeypatch: Any) -> None:
+    import threading
+
+    import tcp_bridge.parameters as parameters
+
+    disk = threading.Event()
+    real = parameters.write_atomically
+
+    def stuck(path: Any, text: str) -> None:
+        disk.wait(5)
+        real(path, text)
+    monkeypatch.setattr(parameters, "write_atomically", stuck)
+    path = tmp_path / "s.json"
+    t = AxisTable.from_mapping({"bridge": {**FAST, "state_file": str(path)},
+                                "bus": {"can1": {"backend": "instant"}},
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000}]})
+    engine = build_engine(t)
+    start = time.monotonic()
+    assert run_async(engine, "1S05=3").status is Status.ACK  # 6081h, then the arrays
+    assert run_async(engine, "1S22=-1").status is Status.ACK
+    assert run_async(engine, "1R10").status is Status.ACK  # the bus is free
+    assert time.monotonic() - start < 1.0
+    disk.set()
+    engine.close()  # flushes the state file
+    assert json.loads(path.read_text())["axes"]["1"]["parameters"] == {"22": -1, "5": 3000}
