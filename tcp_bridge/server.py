@@ -7,7 +7,8 @@ Spec 2.1: the gateway is a TCP server on two ports, 1912 (NICOS / EPICS) and
   line length; an overlong line is answered CAN once);
 * requests are processed strictly in order, each awaited before the next, so
   every client gets its replies in request order; different connections
-  interleave freely;
+  interleave freely, request by request, even when one pipelines;
+* a client that went away (reset) has the rest of its pipeline dropped;
 * each reply is one 30-byte ``write`` (spec 2.2.2);
 * :meth:`BridgeServer._answer` is the one place where an exception becomes a
   reply: CAN for an invalid command, NAK for anything else (a failed device
@@ -127,6 +128,11 @@ class BridgeServer:
                 return  # EOF; a half-received request is dropped unanswered
             items = splitter.feed(data)
             for done, item in enumerate(items):
+                if done:
+                    # Requests answered without the bus never suspend: yield to
+                    # the loop between pipelined requests, so that one client's
+                    # pipeline cannot hold up every other connection.
+                    await asyncio.sleep(0)
                 if writer.is_closing():
                     # The client went away (reset, or a failed write): the rest of
                     # its pipeline would only be executed for nobody.

@@ -218,6 +218,27 @@ def test_malformed_flood_does_not_disturb_another_clients_moves(running: Running
     assert nodes_of(running.engine)[2].log == []  # no SDO from any malformed request
 
 
+def test_a_pipelining_client_does_not_starve_another(running: Running) -> None:
+    # R86 needs no bus, so it is answered on the event loop: without a yield
+    # between pipelined requests, one 4 KiB read (800 requests) would run
+    # before any other client's request.
+    order: List[int] = []
+    execute = running.engine.execute
+
+    async def recording(request: Any) -> bytes:
+        order.append(request.axis)
+        return await execute(request)
+    running.engine.execute = recording  # type: ignore[method-assign]
+    with running.connect() as flooder, running.connect() as other:
+        assert exchange(other, b"2R86") == [named("2 R 86=0", Status.ACK)]
+        order.clear()
+        flooder.sendall(b"1R86\r" * 800)
+        other.sendall(b"2R86\r")
+        assert recv_replies(other, 1) == [named("2 R 86=0", Status.ACK)]
+        assert len(recv_replies(flooder, 800)) == 800
+    assert order.index(2) < 100, f"waited for {order.index(2)} requests of the other client"
+
+
 def test_many_clients_each_get_their_own_replies_in_order(running: Running) -> None:
     errors: List[str] = []
 
