@@ -25,13 +25,17 @@ Choices a client may notice:
 * Fault reset is a rising edge of cw bit 7 (transition 15) followed by cw 00h;
   a drive that shows no fault is left alone (a reset must never disable a
   running axis).
+* Enable, moves and homing each have **one** bound, ``ack_timeout``, for all
+  their waits together (a :class:`Deadline`), so the ACK or NAK of 04 and 00
+  comes within it; ``state_timeout`` caps each single state or mode change
+  inside it.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Callable, Final
+from typing import Callable, Final, Optional
 
 from epos_link.cia402 import State, state_from_statusword
 
@@ -86,6 +90,18 @@ class Mode(IntEnum):
     HOMING = 6
 
 
+class Deadline:
+    """One bound shared by the waits of a sequence (pyserial's ``Timeout``, in small)."""
+
+    def __init__(self, clock: Callable[[], float], timeout: float) -> None:
+        self._clock = clock
+        self._end = clock() + timeout
+
+    def time_left(self, cap: Optional[float] = None) -> float:
+        left = max(self._end - self._clock(), 0.0)
+        return left if cap is None else min(left, cap)
+
+
 @dataclass(frozen=True)
 class Timing:
     ack_timeout: float = 2.0
@@ -137,7 +153,7 @@ class Cia402:
 
     def enable(self) -> None:
         """To OPERATION ENABLED, one checked step at a time, within ``ack_timeout``."""
-        deadline = self._clock() + self.timing.ack_timeout
+        deadline = Deadline(self._clock, self.timing.ack_timeout)
         steps = {
             State.SWITCH_ON_DISABLED: (Cw.SHUTDOWN, State.READY_TO_SWITCH_ON),
             State.READY_TO_SWITCH_ON: (Cw.SWITCH_ON, State.SWITCHED_ON),
@@ -150,17 +166,16 @@ class Cia402:
                 return
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 raise DeviceFailure(f"{self.port.name}: in {state.name}; reset it (S17) first")
-            remaining = max(deadline - self._clock(), 0.0)
+            step_timeout = deadline.time_left(self.timing.state_timeout)
             if state is State.NOT_READY_TO_SWITCH_ON:  # self test: wait, it moves by itself
                 state = decode_state(self.wait_status(
                     lambda sw: decode_state(sw) is not State.NOT_READY_TO_SWITCH_ON,
-                    min(remaining, self.timing.state_timeout), "end of self test"))
+                    step_timeout, "end of self test"))
                 continue
             command, target = steps[state]
             self.port.write(CONTROLWORD, 0, command)
             state = decode_state(self.wait_status(
-                lambda sw, t=target: decode_state(sw) is t,
-                min(remaining, self.timing.state_timeout), target.name))
+                lambda sw, t=target: decode_state(sw) is t, step_timeout, target.name))
         raise DeviceFailure(f"{self.port.name}: enable did not reach OPERATION_ENABLED")
 
     def disable(self) -> None:
@@ -216,38 +231,47 @@ class Cia402:
 
     # -- modes and motion --------------------------------------------------------
 
-    def set_mode(self, mode: int) -> None:
-        """Write 6060h and wait until 6061h shows it (CiA 402-2 6.3)."""
+    def set_mode(self, mode: int, timeout: Optional[float] = None) -> None:
+        """Write 6060h and wait until 6061h shows it (CiA 402-2 6.3).
+
+        Within ``timeout`` seconds, by default ``state_timeout``.
+        """
         if self.port.read(MODES_DISPLAY, 0) == mode:
             return
         self.port.write(MODES_OF_OPERATION, 0, mode)
-        deadline = self._clock() + self.timing.state_timeout
+        timeout = self.timing.state_timeout if timeout is None else timeout
+        deadline = Deadline(self._clock, timeout)
         while self.port.read(MODES_DISPLAY, 0) != mode:
-            if self._clock() >= deadline:
+            if deadline.time_left() <= 0:
                 raise DeviceFailure(f"{self.port.name}: mode {mode} not displayed in 6061h "
-                                    f"within {self.timing.state_timeout:g} s")
+                                    f"within {timeout:g} s")
             self._sleep(self.timing.poll_interval)
+
+    def _move_deadline(self) -> Deadline:
+        return Deadline(self._clock, self.timing.ack_timeout)
 
     def move_position(self, target: int, relative: bool) -> None:
         """Profile position set-point (CiA 402-2 6.7.1): returns once acknowledged."""
+        deadline = self._move_deadline()
         self.require_enabled()
-        self.set_mode(Mode.PROFILE_POSITION)
+        self.set_mode(Mode.PROFILE_POSITION, deadline.time_left(self.timing.state_timeout))
         halt = self.port.read(CONTROLWORD, 0) & Cw.HALT
         self.port.write(TARGET_POSITION, 0, target)
         base = Cw.ENABLE_OPERATION | Cw.CHANGE_SET_IMMEDIATELY | (Cw.RELATIVE if relative else 0)
         self.port.write(CONTROLWORD, 0, base | halt)  # bit 4 low, so the next write is an edge
-        self.wait_status(lambda sw: not sw & Sw.OP_MODE_12, self.timing.ack_timeout,
+        self.wait_status(lambda sw: not sw & Sw.OP_MODE_12, deadline.time_left(),
                          "set-point acknowledge low")
         self.port.write(CONTROLWORD, 0, base | halt | Cw.NEW_SET_POINT)
-        self.wait_status(lambda sw: bool(sw & Sw.OP_MODE_12), self.timing.ack_timeout,
+        self.wait_status(lambda sw: bool(sw & Sw.OP_MODE_12), deadline.time_left(),
                          "set-point acknowledge")
         self.port.write(CONTROLWORD, 0, base)  # bit 4 and halt released
 
     def move_velocity(self, velocity: int) -> None:
         """Profile velocity (CiA 402-2 6.9): target velocity, mode 3, halt released."""
+        deadline = self._move_deadline()
         self.require_enabled()
         self.port.write(TARGET_VELOCITY, 0, velocity)
-        self.set_mode(Mode.PROFILE_VELOCITY)
+        self.set_mode(Mode.PROFILE_VELOCITY, deadline.time_left(self.timing.state_timeout))
         self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION)
         self.require_enabled()
 
@@ -259,13 +283,14 @@ class Cia402:
 
     def home(self) -> None:
         """Homing (CiA 402-2 6.6): mode 6, rising edge of bit 4, wait until it runs."""
+        deadline = self._move_deadline()
         self.require_enabled()
-        self.set_mode(Mode.HOMING)
+        self.set_mode(Mode.HOMING, deadline.time_left(self.timing.state_timeout))
         self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION)
         self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.NEW_SET_POINT)
         # In progress: bit 10 low; attained: bit 12; error: bit 13.
         sw = self.wait_status(
             lambda s: bool(s & Sw.OP_MODE_13) or bool(s & Sw.OP_MODE_12)
-            or not s & Sw.TARGET_REACHED, self.timing.ack_timeout, "homing started")
+            or not s & Sw.TARGET_REACHED, deadline.time_left(), "homing started")
         if sw & Sw.OP_MODE_13:
             raise DeviceFailure(f"{self.port.name}: homing error (statusword 0x{sw:04X})")
