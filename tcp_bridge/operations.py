@@ -23,7 +23,9 @@ Rules not spelled out by the spec, chosen here:
 * 18 General Error is the CiA 301 error register 1001h (spec 4.c has its bits).
 * 82 is statusword bit 10; in profile velocity mode, where bit 10 means
   "velocity reached", it is bit 10 and bit 12 ("speed is zero"), so a running
-  velocity move reads 0.
+  velocity move reads 0. The mode is the drive's (6061h), read in the same
+  job, and only when it matters (bit 10 set, bit 12 clear): a mode changed by
+  raw SDO, another master or a reset is never mistaken.
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ from .parameters import ParameterStore
 from .commands import CommandKind, CommandSpec, ObjectRef, SdoSelector
 from .errors import DeviceFailure, InvalidCommand
 from .sdo import NodeSilent, SdoPort, object_type
-from .sequences import STATUSWORD, Cia402, Mode, Sw, State, Timing
+from .sequences import MODES_DISPLAY, STATUSWORD, Cia402, Mode, Sw, State, Timing
 from .units import Number, Scaling
 
 log = logging.getLogger(__name__)
@@ -93,7 +95,6 @@ class AxisOps:
         self.drive = Cia402(port, timing, **cia402_options) if port is not None else None  # type: ignore[arg-type]
         self.power_cycled = True  # spec 2.1: first enable after power-up resets and writes
         self.moving_ack = 0  # command 86
-        self.mode: Optional[int] = None  # last mode this bridge set (for 82)
 
     # -- helpers ---------------------------------------------------------------------
 
@@ -165,12 +166,14 @@ class AxisOps:
                                      size=selector.length, signed=signed)
         if spec.kind is CommandKind.STATUS_BIT:
             assert spec.bit is not None
-            bit, velocity_mode = spec.bit, self.mode == Mode.PROFILE_VELOCITY
+            bit = spec.bit
 
             def status_bit() -> int:
                 sw = port.read(STATUSWORD, 0)
-                if n == 82 and velocity_mode:
-                    return int(bool(sw & Sw.TARGET_REACHED) and bool(sw & Sw.OP_MODE_12))
+                if n == 82 and sw & Sw.TARGET_REACHED and not sw & Sw.OP_MODE_12:
+                    # Reached in any mode but profile velocity, where bit 10 is
+                    # "velocity reached" and bit 12 "speed is zero": still moving.
+                    return int(port.read(MODES_DISPLAY, 0) != Mode.PROFILE_VELOCITY)
                 return (sw >> bit) & 1
             return status_bit
         obj = spec.obj
@@ -237,15 +240,11 @@ class AxisOps:
         if n == 7:
             mode = int(value)
 
-            def set_mode() -> None:
-                drive.set_mode(mode)
-                self.mode = mode
-            return set_mode
+            return lambda: drive.set_mode(mode)
         if n == 16:
             def reset_node() -> None:
                 port.nmt_reset()
                 self.power_cycled = True
-                self.mode = None
             return reset_node
         if n == 17:
             return drive.fault_reset
@@ -334,7 +333,6 @@ class AxisOps:
         if self.power_cycled:
             drive.statusword()  # an absent node answers NAK now, not after reset_timeout
             port.nmt_reset()
-            self.mode = None
             drive.wait_for_node()
             self._plan_write_parameters()()
             self.power_cycled = False
@@ -362,7 +360,6 @@ class AxisOps:
 
             def start() -> None:
                 drive.move_position(raw, relative=how == 2)
-                self.mode = Mode.PROFILE_POSITION
         elif how == 3:
             velocity = self.params.user(self.addr, 5) if target is None else target
             if velocity is None:
@@ -371,11 +368,9 @@ class AxisOps:
 
             def start() -> None:
                 drive.move_velocity(raw)
-                self.mode = Mode.PROFILE_VELOCITY
         elif how == 9:
             def start() -> None:
                 drive.home()
-                self.mode = Mode.HOMING
         else:  # 8: stop
             return drive.halt
 

@@ -717,3 +717,21 @@ def test_move_nak_comes_within_one_ack_timeout() -> None:
     assert ask(engine, "1S00=1").status is Status.NAK
     assert now[0] - start <= 0.2 + 0.011
     engine.close()
+
+
+def test_82_reads_the_drive_mode_not_a_remembered_one() -> None:
+    # Mode changes the bridge did not make (raw SDO 80/81, another master, a
+    # drive reset) must not change the meaning of 82: the drive's 6061h decides.
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S80=0x60600001")
+    ok(engine, "1S81=3")  # profile velocity, behind the bridge's back
+    ok(engine, "1S80=0x60FF0004")
+    ok(engine, "1S81=2000")  # running at constant speed: sw bit 10 set, bit 12 clear
+    assert ok(engine, "1R82") == "0"
+    ok(engine, "1S05=1")
+    ok(engine, "1S00=3")  # a velocity move the bridge made ...
+    ok(engine, "1S80=0x60600001")
+    ok(engine, "1S81=1")  # ... then profile position, behind its back
+    assert node.statusword & 0x1400 == 0x0400  # target reached, no set-point acknowledge
+    assert ok(engine, "1R82") == "1"
