@@ -6,15 +6,19 @@
     tcp-bridge serve --simulate [--axes N]
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
 
-Expected failures (a port in use, a bad axis table, an unreachable CAN
-adapter, a refused connection) print one line and exit with status 2;
-``send`` exits 0 when every reply is ACK, 1 otherwise.
+Expected failures (a bad argument, a port in use, an unknown bind address, a
+bad axis table, an unreachable CAN adapter, a refused connection) print one
+line and exit with status 2; ``send`` exits 0 when every reply is ACK, 1
+otherwise. ``serve`` stops on SIGINT or SIGTERM, finishing the transfers in
+flight; a second signal exits at once (status 128 + signal number), waiting
+at most a second for the state file.
 """
 from __future__ import annotations
 
 import argparse
 import asyncio
 import logging
+import math
 import os
 import signal
 import socket
@@ -32,6 +36,47 @@ PROG = "tcp-bridge"
 def _fail(message: str) -> int:
     print(f"{PROG}: {message}", file=sys.stderr)
     return 2
+
+
+# --- argument types: argparse turns ArgumentTypeError into one line and exit 2 ------------
+
+
+def _int(text: str, what: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+
+
+def port(text: str) -> int:
+    value = _int(text, "a port (0..65535)")
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{value} is not a port (0..65535)")
+    return value
+
+
+def optional_port(text: str) -> int:
+    value = _int(text, "a port (0..65535, or -1 for none)")
+    if not -1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{value} is not a port (0..65535, or -1 for none)")
+    return value
+
+
+def positive_int(text: str) -> int:
+    value = _int(text, "a positive integer")
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not a positive integer")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text} is not a positive number of seconds")
+    return value
 
 
 # --- serve ---------------------------------------------------------------------------
@@ -70,13 +115,27 @@ async def _serve(args: argparse.Namespace) -> int:
         await server.start()
     except OSError as exc:
         engine.close()
-        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        # asyncio rewrites a bind error's strerror; a resolver error (gaierror)
+        # has a negative errno that os.strerror does not know.
+        why = os.strerror(exc.errno) if exc.errno and exc.errno > 0 else exc.strerror or str(exc)
         return _fail(f"cannot listen on {args.bind} port {'/'.join(map(str, ports))}: {why}")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+
+    def on_signal(signum: int) -> None:
+        if not stop.is_set():
+            stop.set()
+            return
+        # Second signal: do not wait for transfers in flight (a stuck bus could
+        # take minutes); only give the state file writer a moment.
+        print(f"{PROG}: second signal; exiting now, transfers in flight are abandoned",
+              file=sys.stderr, flush=True)
+        engine.params.flush(1.0)
+        os._exit(128 + signum)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
         try:
-            loop.add_signal_handler(sig, stop.set)
+            loop.add_signal_handler(sig, on_signal, sig)
         except (NotImplementedError, RuntimeError):  # pragma: no cover - Windows
             pass
     names = ["NICOS/EPICS", "maintenance"]
@@ -85,7 +144,7 @@ async def _serve(args: argparse.Namespace) -> int:
     axes = ", ".join(f"{a.addr}={a.bus}/{a.node_id}" for a in table.axes.values())
     print(f"{PROG}: listening on {where}; axes {axes or '(none)'}", flush=True)
     await stop.wait()
-    print(f"{PROG}: shutting down", flush=True)
+    print(f"{PROG}: shutting down (a second signal exits at once)", flush=True)
     await server.close()
     return 0
 
@@ -156,11 +215,14 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--sim-baud", type=int, help=argparse.SUPPRESS)
     s.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
                    help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
-    s.add_argument("--port", type=int, default=1912, help="NICOS/EPICS port (default 1912)")
-    s.add_argument("--maintenance-port", type=int, default=1913,
+    s.add_argument("--port", type=port, default=1912,
+                   help="NICOS/EPICS port (default 1912; 0: any free port)")
+    s.add_argument("--maintenance-port", type=optional_port, default=1913,
                    help="maintenance port (default 1913; -1: none)")
-    s.add_argument("--max-connections", type=int, default=64)
-    s.add_argument("--idle-timeout", type=float, default=None, metavar="SECONDS")
+    s.add_argument("--max-connections", type=positive_int, default=64, metavar="N",
+                   help="simultaneous clients; more are closed at once (default 64)")
+    s.add_argument("--idle-timeout", type=positive_seconds, default=None, metavar="SECONDS",
+                   help="close a connection without a request for this long (default: never)")
     s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
     s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
     s.add_argument("-v", "--verbose", action="store_true", help="log connections")

@@ -429,3 +429,75 @@ def test_cli_serve_bad_config_is_one_line(tmp_path: Path) -> None:
     proc = serve(["--config", str(bad)])
     _, err = proc.communicate(timeout=20)
     assert proc.returncode == 2 and "Traceback" not in err and "1..127" in err
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--port", "70000"], "argument --port: 70000 is not a port (0..65535)"),
+    (["--port", "x"], "argument --port: 'x' is not a port (0..65535)"),
+    (["--maintenance-port", "-5"], "argument --maintenance-port: -5 is not a port (0..65535, or -1 for none)"),
+    (["--idle-timeout", "0"], "argument --idle-timeout: 0 is not a positive number of seconds"),
+    (["--idle-timeout", "-1"], "argument --idle-timeout: -1 is not a positive number of seconds"),
+    (["--idle-timeout", "nan"], "argument --idle-timeout: nan is not a positive number of seconds"),
+    (["--max-connections", "0"], "argument --max-connections: 0 is not a positive integer"),
+])
+def test_cli_serve_bad_arguments_are_one_clear_line(tmp_path: Path, args: List[str],
+                                                    message: str) -> None:
+    proc = serve(["--config", str(write_config(tmp_path)), *args])
+    try:
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 2
+    assert "Traceback" not in err and err.strip().splitlines()[-1].endswith(message)
+
+
+def test_cli_serve_unresolvable_bind_address(tmp_path: Path) -> None:
+    proc = serve(["--config", str(write_config(tmp_path)), "--bind", "no-such-host.invalid",
+                  "--port", "0", "--maintenance-port", "-1"])
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    line = err.strip()
+    assert line.startswith("tcp-bridge: cannot listen on no-such-host.invalid port 0: ")
+    assert "Unknown error" not in line and "\n" not in line
+
+
+HANGING_SERVE = """
+import sys, time
+from tcp_bridge.backends import instant
+upload = instant.FakeNode.upload
+def slow(self, index, subindex):
+    if index == 0x6041:
+        time.sleep(60)  # a transfer that will not finish soon
+    return upload(self, index, subindex)
+instant.FakeNode.upload = slow
+from tcp_bridge.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_cli_second_signal_exits_at_once(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", HANGING_SERVE, "serve", "--config", str(write_config(tmp_path)),
+         "--port", "0", "--maintenance-port", "-1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # type: ignore[union-attr]
+        port = int(line.split("127.0.0.1:")[1].split()[0])
+        assert cli.send(f"127.0.0.1:{port}", ["1S22=-1"])[0].status is Status.ACK
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.sendall(b"1R10\r")  # in flight for 60 s
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGINT)
+            assert proc.stdout.readline().startswith("tcp-bridge: shutting down")  # type: ignore[union-attr]
+            time.sleep(0.3)
+            with pytest.raises(subprocess.TimeoutExpired):
+                proc.wait(0.5)  # the first signal waits for the transfer in flight
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(5) == 130
+        err = proc.stderr.read()  # type: ignore[union-attr]
+        assert "second signal" in err and "Traceback" not in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert '"22": -1' in (tmp_path / "state.json").read_text()  # still persisted
