@@ -185,11 +185,40 @@ def test_absent_node_is_nak_and_the_bridge_keeps_serving(bridge: Bridge) -> None
     assert bridge.ok("1R99").startswith("2.3-py")
 
 
-def test_bad_values_reach_no_drive(bridge: Bridge) -> None:
-    before = bridge.ok("2R12")
-    for line in ("2S02=1x", "2S02=", "2S00=7", "2S04=5"):
-        assert bridge.ask(line).status is Status.CAN
-    assert bridge.ok("2R12") == before
+class SdoCounter:
+    """Counts the SDO requests that reach every simulated drive's object store.
+
+    Each SDO upload or download for a simulated drive, over CAN or through
+    the EPOS4 gateway, ends in its ``ObjectStore.read`` / ``write``.
+    """
+
+    def __init__(self, sim: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.count = 0
+        for drive in sim.drives.values():
+            for name in ("read", "write"):
+                monkeypatch.setattr(drive.store, name, self._counted(getattr(drive.store, name)))
+
+    def _counted(self, fn: Any) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            self.count += 1
+            return fn(*args, **kwargs)
+        return call
+
+
+def test_bad_values_reach_no_drive(bridge: Bridge, monkeypatch: pytest.MonkeyPatch) -> None:
+    sdo = SdoCounter(bridge.sim, monkeypatch)
+    for line in ("2S02=1x", "2S02=", "2S00=7", "2S04=5", "2S05=0x10", "2S81=x", "2S07=2",
+                 "2S02=99999999999", "2X10", "2R00", "2S10=1"):
+        assert bridge.ask(line).status is Status.CAN, line
+    assert sdo.count == 0
+    bridge.ok("2R12")
+    assert sdo.count == 1  # the counter sees a request that does reach the drive
+
+
+def test_mode_of_operation_07_and_its_display_15(bridge: Bridge) -> None:
+    for mode in ("3", "6", "1"):  # profile velocity, homing, profile position
+        bridge.ok(f"2S07={mode}")
+        assert (bridge.ok("2R07"), bridge.ok("2R15")) == (mode, mode)
 
 
 def test_serve_simulate_from_the_command_line() -> None:

@@ -287,6 +287,20 @@ def test_homing_mode_6_and_bit_4() -> None:
     assert ok(engine, "1R15") == "6"
 
 
+def test_mode_of_operation_07_and_its_display_15() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    for mode in (3, 6, 1):  # profile velocity, homing, profile position (CiA 402-2 6.3)
+        node.log.clear()
+        ok(engine, f"1S07={mode}")
+        assert downloads(node, 0x6060) == [(0x6060, 0, mode)]
+        assert ok(engine, "1R07") == str(mode)  # 6060h
+        assert ok(engine, "1R15") == str(mode)  # 6061h, the drive's display
+    node.log.clear()
+    ok(engine, "1S07=1")  # already displayed: nothing to write
+    assert downloads(node, 0x6060) == []
+
+
 def test_move_needs_an_enabled_drive_and_a_target() -> None:
     engine, nodes = make()
     assert ask(engine, "1S00=1").status is Status.CAN  # no S02 yet: nothing to move to

@@ -120,6 +120,31 @@ def test_replies_in_request_order_when_pipelined(running: Running) -> None:
     assert values == [str(i) for i in range(1, 59, 2)]
 
 
+def test_each_reply_is_one_write_of_30_bytes(running: Running,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    # Spec 2.2.2: the reply telegram is 30 bytes, sent in one piece. Every
+    # write the server's transports make is recorded.
+    from asyncio import selector_events
+
+    writes: List[bytes] = []
+    transport = selector_events._SelectorSocketTransport
+    original = transport.write
+
+    def recording(self: Any, data: Any) -> None:
+        writes.append(bytes(data))
+        original(self, data)
+    monkeypatch.setattr(transport, "write", recording)
+    lines = [b"1R99", b"1S02=1.5", b"1R02", b"1R10", b"1S10=1", b"garbage", b"1S02=" + b"1" * 300,
+             b"7R10", b"1R86"]
+    with running.connect() as s:
+        replies = exchange(s, *lines)  # pipelined
+        for line in lines:  # and one at a time
+            replies += exchange(s, line)
+    assert len(writes) == 2 * len(lines)
+    assert all(len(w) == REPLY_SIZE for w in writes)
+    assert writes == replies
+
+
 @pytest.mark.parametrize("raw,expected", [
     (b"\xff\xfe\x00garbage", named("? ? ?", Status.CAN)),
     (b"7R10", named("7 R 10", Status.CAN)),  # axis not configured
@@ -201,8 +226,9 @@ def test_malformed_flood_does_not_disturb_another_clients_moves(running: Running
             got += exchange(s, b"1S04=1", b"1S05=5", b"1S06=50")
             for target in (3, -2, 7):
                 got += exchange(s, b"1S02=%d" % target, b"1S00=1")
+                deadline = time.monotonic() + 10
                 while decode_reply(exchange(s, b"1R82")[0]).value != "1":
-                    pass
+                    assert time.monotonic() < deadline, "R82 never became 1"
                 got += exchange(s, b"1R12")
         results["moves"] = [decode_reply(r) for r in got]
 
