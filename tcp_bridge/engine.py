@@ -4,8 +4,8 @@
 
     Request --prepare()--> Job --execute()--> reply bytes
               (event loop:          (bus worker thread: SDO transfers,
-               validate, convert;    one ThreadPoolExecutor(max_workers=1)
-               InvalidCommand=CAN)   per bus; DeviceFailure = NAK)
+               validate, convert;    one BusWorker per bus,
+               InvalidCommand=CAN)   tcp_bridge.workers; DeviceFailure = NAK)
 
 :meth:`Engine.prepare` checks everything a request says (axis, command, R/W
 rights, value, conversions, ranges) before any transfer is planned, so a
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from typing import (Any, Callable, Dict, Generator, List, Mapping, Optional, Sequence, Tuple,
@@ -49,6 +48,7 @@ from .protocol import ReadRequest, Request, Status, format_read_reply, format_wr
 from .sdo import SdoPort
 from .sequences import Timing
 from .units import parse_value
+from .workers import BusWorker
 
 log = logging.getLogger(__name__)
 
@@ -152,8 +152,8 @@ class Engine:
                 port = SdoPort(node, name=f"axis {addr} ({axis.bus} node {axis.node_id})",
                                debug=lambda: self.debug)
             self.axes[addr] = AxisOps(axis, self.params, port, timing, **cia402_options)
-        self._executors: Dict[str, ThreadPoolExecutor] = {
-            bus: ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"bus-{bus}")
+        self._workers: Dict[str, BusWorker] = {
+            bus: BusWorker(bus)
             for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
         }
 
@@ -299,10 +299,9 @@ class Engine:
             return done.value  # type: ignore[no-any-return]
 
     def _submit(self, job: Job) -> "asyncio.Future[bytes]":
-        loop = asyncio.get_running_loop()
         if job.bus is not None:
-            return loop.run_in_executor(self._executors[job.bus], job)
-        future: asyncio.Future[bytes] = loop.create_future()
+            return self._workers[job.bus].submit(job)
+        future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
         try:
             future.set_result(job())
         except Exception as exc:
@@ -321,8 +320,8 @@ class Engine:
 
     def close(self, wait: bool = True) -> None:
         """Finish the transfers in flight (``wait``), write the state file, close the backends."""
-        for executor in self._executors.values():
-            executor.shutdown(wait=wait, cancel_futures=True)
+        for worker in self._workers.values():
+            worker.close(wait=wait)
         self.params.close()
         for backend in self.backends:
             try:
