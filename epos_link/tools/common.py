@@ -9,6 +9,7 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from typing import Callable
 
@@ -42,11 +43,19 @@ def parse_int(text: str) -> int:
     return -value if negative else value
 
 
-def positive_float(text: str) -> float:
+def parse_float(text: str) -> float:
+    """A finite decimal number; for argparse ``type=``."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def positive_float(text: str) -> float:
+    value = parse_float(text)
     if value <= 0:
         raise argparse.ArgumentTypeError("must be above 0")
     return value

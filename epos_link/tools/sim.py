@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import signal
 import sys
 import threading
 from typing import Any, Optional
 
 from ..errors import EposError
+from .common import baud_rate, parse_float, parse_int
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -28,42 +28,23 @@ def _host_port(text: str) -> tuple[str, int]:
 
 
 def _probability(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    value = parse_float(text)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"a probability is between 0 and 1, got {text}")
     return value
 
 
 def _node_id(text: str) -> int:
-    try:
-        node = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a node id: {text!r}") from None
+    node = parse_int(text)
     if not 1 <= node <= 127:
         raise argparse.ArgumentTypeError(f"node ids are 1..127, got {node}")
     return node
 
 
 def _milliseconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"a delay is a finite, non-negative number of ms, got {text}")
-    return value
-
-
-def _baud(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a baud rate: {text!r}") from None
-    if not 50 <= value <= 12_000_000:
-        raise argparse.ArgumentTypeError(f"baud rate {value} is outside 50..12000000")
+    value = parse_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a delay is a non-negative number of ms, got {text}")
     return value
 
 
@@ -86,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the simulated EPOS4's own node id (default 1)")
     parser.add_argument("--drives", type=_node_list, default=[], metavar="2,3",
                         help="node ids of simulated drives behind the CAN gateway")
-    parser.add_argument("--baud", type=_baud, default=None, help="pace replies like a UART at N baud")
+    parser.add_argument("--baud", type=baud_rate, default=None, help="pace replies like a UART at N baud")
     parser.add_argument("--drop", type=_probability, default=0.0, metavar="P",
                         help="drop each reply byte with probability P")
     parser.add_argument("--corrupt", type=_probability, default=0.0, metavar="P",
