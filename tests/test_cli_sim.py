@@ -1,6 +1,7 @@
 """`epos-link sim` as a user runs it: a subprocess that prints where it listens."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -70,3 +71,21 @@ def test_more_bad_input_is_a_message(args: list[str]) -> None:
     out = cli(*args)
     assert out.returncode == 2, out.stdout + out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_sim_records_a_trace(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    trace = tmp_path / "sim.txt"
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link", "sim", "--tcp", "127.0.0.1:0",
+                             "--trace", str(trace)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    url = proc.stdout.readline().split()[-1]
+    try:
+        assert cli("read", url, "0", "0x1000", "0").returncode == 0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(10)
+    out = cli("decode", str(trace), "--json")
+    assert out.returncode == 0, out.stderr
+    lines = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [(o["direction"], o["name"]) for o in lines] == [("TX", "ReadObject"), ("RX", "ReadObjectAnswer")]
+    assert lines[1]["data"] == "92010200"

@@ -18,6 +18,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Optional, Protocol
 
+from ..capture import CaptureWriter
+
 log = logging.getLogger(__name__)
 
 BITS_PER_BYTE = 10  # 8N1: start, 8 data, stop (guide 2.2.6)
@@ -82,12 +84,20 @@ class FaultInjector:
 class LinkServer:
     """Runs the request/answer loop over one byte stream (fd or socket)."""
 
-    def __init__(self, device: Device, options: Optional[LinkOptions] = None) -> None:
+    def __init__(self, device: Device, options: Optional[LinkOptions] = None,
+                 trace: Optional[CaptureWriter] = None) -> None:
         self.device = device
         self.options = options or LinkOptions()
         self.faults = FaultInjector(self.options)
         self.replies = 0
+        # Records the link as the host sees it: TX host to device, RX as sent (faults included).
+        self.trace = trace
+        self._t0 = time.monotonic()
         self._stop = threading.Event()
+
+    def _record(self, direction: str, data: bytes) -> None:
+        if self.trace is not None and data:
+            self.trace.write(time.monotonic() - self._t0, direction, data)
 
     def stop(self) -> None:
         self._stop.set()
@@ -101,6 +111,7 @@ class LinkServer:
         if opts.delay:
             time.sleep(opts.delay)
         reply = self.faults.apply(reply)
+        self._record("RX", reply)
         if opts.baud:
             # Pace the bytes like a UART would, in small bursts.
             per_byte = BITS_PER_BYTE / opts.baud
@@ -134,6 +145,7 @@ class LinkServer:
                 # The request itself took wire time to arrive.
                 time.sleep(len(data) * BITS_PER_BYTE / opts.baud)
             last_rx = now
+            self._record("TX", data)
             for reply in self.device.receive(data):
                 if opts.silent:
                     continue
@@ -153,8 +165,9 @@ def _raw_tty(fd: int) -> None:
 class PtyLink:
     """A pseudo-terminal: the host opens :attr:`path` like a serial port."""
 
-    def __init__(self, device: Device, options: Optional[LinkOptions] = None) -> None:
-        self.server = LinkServer(device, options)
+    def __init__(self, device: Device, options: Optional[LinkOptions] = None,
+                 trace: Optional[CaptureWriter] = None) -> None:
+        self.server = LinkServer(device, options, trace)
         self.master, self.slave = os.openpty()
         _raw_tty(self.slave)
         _raw_tty(self.master)
@@ -202,8 +215,9 @@ class TcpLink:
     """A TCP listener, one host at a time: reach it with ``socket://HOST:PORT``."""
 
     def __init__(self, device: Device, options: Optional[LinkOptions] = None,
-                 host: str = "127.0.0.1", port: int = 0) -> None:
-        self.server = LinkServer(device, options)
+                 host: str = "127.0.0.1", port: int = 0,
+                 trace: Optional[CaptureWriter] = None) -> None:
+        self.server = LinkServer(device, options, trace)
         self.sock = socket.create_server((host, port))
         self.sock.settimeout(0.1)
         self.host, self.port = self.sock.getsockname()[:2]

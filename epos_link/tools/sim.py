@@ -76,12 +76,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="delay each reply by MS milliseconds")
     parser.add_argument("--silent", action="store_true", help="read requests, never answer")
     parser.add_argument("--seed", type=int, default=None, help="seed of the fault generator")
+    parser.add_argument("--trace", metavar="FILE",
+                        help="record the link's traffic to FILE (capture format; TX = host to device)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log protocol events")
 
 
 def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
     from .. import simulator  # noqa: F401  (import cost only for this command)
     from ..simulator.core import Epos4Simulator
+    from ..capture import CaptureWriter
     from ..simulator.link import LinkOptions, PtyLink, TcpLink
 
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
@@ -91,17 +94,29 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         logging.getLogger("canopen").setLevel(logging.CRITICAL)
     options = LinkOptions(baud=args.baud, drop=args.drop, corrupt=args.corrupt,
                           delay=args.delay / 1000.0, silent=args.silent, seed=args.seed)
+    trace_file = None
+    trace = None
+    if args.trace:
+        try:
+            trace_file = open(args.trace, "w", encoding="utf-8")
+        except OSError as exc:
+            print(f"epos-link sim: cannot write the trace: {exc}", file=sys.stderr)
+            return 2
+        trace = CaptureWriter(trace_file, comments=["source: epos-link sim (simulated EPOS4), "
+                                                    "TX host to device, RX device to host"])
     sim = Epos4Simulator(args.node_id, args.drives)
     link: Any
     try:
         if args.tcp:
-            link = TcpLink(sim, options, host=args.tcp[0], port=args.tcp[1])
+            link = TcpLink(sim, options, host=args.tcp[0], port=args.tcp[1], trace=trace)
             where = link.url
         else:
-            link = PtyLink(sim, options)
+            link = PtyLink(sim, options, trace=trace)
             where = link.path
     except (OSError, EposError) as exc:
         sim.close()
+        if trace_file:
+            trace_file.close()
         print(f"epos-link sim: cannot listen: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
@@ -125,4 +140,6 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
     finally:
         link.close()
         sim.close()
+        if trace_file:
+            trace_file.close()
     return 0
