@@ -202,8 +202,8 @@ class FrameDecoder:
                         raise TruncatedFrameError(
                             f"new DLE STX after {len(raw)} bytes of an unfinished frame", raw)
                     else:
-                        raw = bytes(self._raw + buf[:q + 2])
-                        del buf[:q + 1]  # rescan from the byte after the DLE
+                        raw = bytes(self._raw + buf[:q + 1])
+                        del buf[:q + 1]  # rescan from the byte after the DLE (not reported twice)
                         self._start_scan()
                         raise StuffingError(
                             f"DLE followed by 0x{follower:02X} inside a frame", raw)

@@ -86,8 +86,9 @@ def test_bad_crc_frame_is_still_decoded() -> None:
     assert err.raw == BAD_CRC
 
 
-def test_no_byte_is_lost_silently() -> None:
-    stream = b"\x01" + BAD_CRC + b"\x90\x90" + GUIDE_REQUEST[:5] + GUIDE_ANSWER + b"\x07"
+@pytest.mark.parametrize("damage", [b"\x01", b"\x90\x90", b"\x90\x02\x60\x02\x01\x90\x30"])
+def test_no_byte_is_lost_or_reported_twice(damage: bytes) -> None:
+    stream = b"\x01" + BAD_CRC + damage + GUIDE_REQUEST[:5] + GUIDE_ANSWER + b"\x07"
     frames, errors = feed_all(FrameDecoder, [stream])
     reported = sum(len(e.raw) for e in errors) + len(GUIDE_ANSWER)
     assert reported == len(stream)
