@@ -45,6 +45,7 @@ from .errors import (
 SYNC: Final = bytes((DLE, STX))
 _DLE_BYTE: Final = bytes((DLE,))
 _DLE_DLE: Final = bytes((DLE, DLE))
+MAX_WIRE_FRAME: Final = 2 + 2 * (2 + 2 * MAX_LEN_WORDS + 2)  # every byte after the sync doubled
 
 
 class _NeedData:
@@ -106,6 +107,7 @@ class FrameDecoder:
         self._raw = bytearray()   # stuffed bytes of the current frame, for error reports
         self._need = 2            # unstuffed bytes wanted: header first, then the whole frame
         self._eof = False
+        self._carry_dle = False   # the last frame ended in "90 90": its last DLE may start a sync
         self.resync_hidden = True  # see _hidden_sync
 
     @property
@@ -196,15 +198,12 @@ class FrameDecoder:
                         body.append(DLE)
                         i = q + 2
                     elif follower == STX:
-                        raw = bytes(self._raw + buf[:q])
-                        del buf[:q]
-                        self._start_scan()
+                        raw = self._give_back_hidden(bytes(self._raw + buf[:q]), q)
                         raise TruncatedFrameError(
                             f"new DLE STX after {len(raw)} bytes of an unfinished frame", raw)
                     else:
-                        raw = bytes(self._raw + buf[:q + 1])
-                        del buf[:q + 1]  # rescan from the byte after the DLE (not reported twice)
-                        self._start_scan()
+                        # Rescan from the byte after the DLE (so it is not reported twice).
+                        raw = self._give_back_hidden(bytes(self._raw + buf[:q + 1]), q + 1)
                         raise StuffingError(
                             f"DLE followed by 0x{follower:02X} inside a frame", raw)
                 if self._need == 2 and len(body) >= 2:
@@ -222,15 +221,20 @@ class FrameDecoder:
                     self._report_end()
                     continue  # bytes given back by _report_end may hold a frame
                 return NEED_DATA
-            if (not buf and not self._eof and self._raw.endswith(_DLE_DLE)
-                    and not self._crc_matches()):
-                # A bad frame ending in an escaped DLE: the next byte tells whether
-                # that DLE really began the next frame's sync (see _finish).
-                return NEED_DATA
             return self._finish()
 
     def _find_sync(self) -> bool:
         buf = self._buf
+        if self._carry_dle:
+            if not buf:
+                return False
+            self._carry_dle = False
+            if buf[0] == STX and not self._junk:
+                del buf[:1]
+                self._start_scan()
+                self._in_frame = True
+                self._raw += SYNC
+                return True
         p = buf.find(SYNC)
         if p < 0:
             # A trailing DLE may be the first half of the next sync: keep it.
@@ -261,12 +265,14 @@ class FrameDecoder:
         """
         if not self.resync_hidden:
             return -1
-        after = bytes(self._buf) if after is None else after
+        # One wire frame of what follows is enough to judge a candidate; more
+        # would make damaged input cost time in proportion to the buffer.
+        after = bytes(self._buf[:MAX_WIRE_FRAME]) if after is None else after[:MAX_WIRE_FRAME]
         text = raw + after
         start = 2
         while True:
-            at = text.find(b"\x90\x90\x02", start)
-            if at < 0 or at >= len(raw) - 1:
+            at = text.find(b"\x90\x90\x02", start, len(raw) + 1)
+            if at < 0:
                 return -1
             trial = FrameDecoder(max_junk=self.max_junk)
             trial.resync_hidden = False
@@ -280,10 +286,17 @@ class FrameDecoder:
                 pass
             start = at + 1
 
-    def _crc_matches(self) -> bool:
-        body = self._body
-        words = body[1]
-        return int.from_bytes(body[-2:], "little") == frame_crc(body[0], words, bytes(body[2:2 + 2 * words]))
+    def _give_back_hidden(self, dropped: bytes, consumed: int) -> bytes:
+        """Drop ``consumed`` bytes of the buffer with the frame in progress; if a
+        hidden sync lies in ``dropped``, give the bytes from it back. Returns the
+        bytes to report."""
+        del self._buf[:consumed]
+        self._start_scan()
+        hidden = self._hidden_sync(dropped)
+        if hidden >= 0:
+            self._buf[:0] = dropped[hidden + 1:]
+            dropped = dropped[:hidden + 1]
+        return dropped
 
     def _finish(self) -> Frame:
         body = bytes(self._body)
@@ -303,8 +316,12 @@ class FrameDecoder:
             if hidden >= 0:
                 self._buf[:0] = raw[hidden + 1:]
                 raw = raw[:hidden + 1]
+            self._carry_dle = raw.endswith(_DLE_DLE)
             raise CrcError(
                 f"CRC 0x{received:04X} received, 0x{expected:04X} computed", raw, frame)
+        # A frame ending in an escaped DLE whose second DLE was really the next
+        # sync's (a DLE lost in transit): if STX follows, that is a sync.
+        self._carry_dle = raw.endswith(_DLE_DLE)
         return Frame(opcode, data, received)
 
 

@@ -190,3 +190,44 @@ def test_a_damaged_frame_never_hides_the_next(opcode: int, data: bytes, draw: st
         del wire[pos:]
     frames, _ = feed_all(FrameDecoder, [bytes(wire) + GUIDE_ANSWER])
     assert frames[-1:] == [ANS_FRAME]
+
+
+def _answer(value: bytes) -> bytes:
+    return encode_frame(0x00, bytes(4) + value)
+
+
+def test_escaped_dle_then_stx_in_data_does_not_hide_the_next_frames() -> None:
+    """Frame A carries 0x90 0x02 as data (stuffed 90 90 02) and its last byte became a
+    lone DLE: B and C must come out, fed whole, byte by byte or with junk."""
+    a = bytearray(_answer(b"\x90\x02\x11\x22"))
+    a[-1] = 0x90
+    b, c = _answer(b"\x01\x00\x00\x00"), _answer(b"\x02\x00\x00\x00")
+    for label, chunks, _ in three_ways(bytes(a) + b + c):
+        frames, errors = feed_all(FrameDecoder, chunks)
+        assert [f.data[4] for f in frames] == [1, 2], label
+        assert errors, label
+
+
+def test_a_lost_dle_at_the_end_of_a_frame_does_not_hide_the_next() -> None:
+    """A's CRC ends in an escaped 0x90 (90 90); one of those DLEs is lost, so A's last
+    DLE pairs with B's sync DLE. A still checks out, and B must too."""
+    value = next(v for v in range(1 << 16) if _answer(v.to_bytes(4, "little")).endswith(b"\x90\x90"))
+    a, b = _answer(value.to_bytes(4, "little")), _answer(b"\x01\x00\x00\x00")
+    for label, chunks, _ in three_ways(a[:-1] + b):
+        frames, _ = feed_all(FrameDecoder, chunks)
+        assert [f.data[4:] for f in frames] == [value.to_bytes(4, "little"), b"\x01\x00\x00\x00"], label
+
+
+def test_a_bad_frame_ending_in_an_escaped_dle_is_reported_at_once() -> None:
+    """No waiting for a byte that may never come: a host must see the CRC error now."""
+    # An answer with value 04030201 whose CRC high byte was damaged into 0x90 (stuffed).
+    wire = bytes.fromhex("90 02 00 04 00 00 00 00 01 02 03 04 CB 90 90")
+    dec = FrameDecoder()
+    errors = []
+    for byte in bytes(wire):
+        dec.feed(bytes([byte]))
+        try:
+            assert dec.next_frame() is NEED_DATA
+        except CrcError as exc:
+            errors.append(exc)
+    assert len(errors) == 1

@@ -88,7 +88,9 @@ class _Builder:
         self.segments: list[Segment] = []
 
     def ramp(self, a: float, duration: float) -> None:
-        if not duration > 0.0:  # also skips NaN
+        # Skips NaN, and ramps too short to move the clock (t + duration == t):
+        # they would change the speed at an instant no one can observe.
+        if not duration > 0.0 or self.t + duration == self.t:
             return
         seg = Segment(self.t, duration, self.p, self.v, a)
         self.segments.append(seg)
