@@ -50,6 +50,7 @@ from typing import Any, Callable, Iterable, Optional, Type, TypeVar, Union, cast
 
 from .codes import MAX_SEGMENT, ErrorCode, NmtCommand, OpCode
 from .errors import (
+    CrcError,
     DeviceError,
     EposTimeoutError,
     GatewayNotSupportedError,
@@ -177,7 +178,8 @@ class EposClient:
     @classmethod
     def open(cls, url: str, *, trace: Optional[str] = None, baudrate: Optional[int] = None,
              gateway_node_id: Optional[int] = None, timeout: float = DEFAULT_TIMEOUT,
-             retries: int = DEFAULT_RETRIES, **transport_options: Any) -> "EposClient":
+             retries: int = DEFAULT_RETRIES, late_answer_timeout: float = DEFAULT_TIMEOUT,
+             **transport_options: Any) -> "EposClient":
         """Open ``url`` (see :func:`epos_link.transports.open_transport`); ``trace``
         names a capture file that records the traffic."""
         from .transports import open_transport
@@ -193,7 +195,8 @@ class EposClient:
             except TransportError:
                 transport.close()
                 raise
-        return cls(transport, gateway_node_id=gateway_node_id, timeout=timeout, retries=retries)
+        return cls(transport, gateway_node_id=gateway_node_id, timeout=timeout, retries=retries,
+                   late_answer_timeout=late_answer_timeout)
 
     # --- context and life cycle ----------------------------------------------
 
@@ -266,6 +269,8 @@ class EposClient:
                 if decoder.next_frame() is not NEED_DATA:
                     _log.debug("dropped a late answer")
                     return
+            except (CrcError, TruncatedFrameError, MessageFormatError):
+                return  # the late answer came, damaged: the link is in step again
             except RemoteProtocolError:
                 continue
             left = deadline - time.monotonic()
