@@ -129,6 +129,11 @@ def steps(job: Job) -> Steps:
     return outcome
 
 
+def _log_halt(future: "asyncio.Future[bytes]") -> None:
+    if not future.cancelled() and future.exception() is not None:
+        log.error("halt after a timed-out multi-axis move failed: %s", future.exception())
+
+
 class Engine:
     """All axes, their parameters and their bus workers; the one command implementation."""
 
@@ -297,6 +302,14 @@ class Engine:
                 batch = plan.send(list(outcomes))
         except StopIteration as done:
             return done.value  # type: ignore[no-any-return]
+        except asyncio.TimeoutError:
+            # A multi-axis move ran out of time part-way: some axes may be moving
+            # while the others' moves were cancelled. Halt them all (queued on
+            # their buses, not awaited: the request already failed).
+            for axis_job in (job, *job.companions) if job.companions else ():
+                if axis_job.stop is not None:
+                    self._submit(axis_job.stop).add_done_callback(_log_halt)
+            raise
 
     def _submit(self, job: Job) -> "asyncio.Future[bytes]":
         if job.bus is not None:

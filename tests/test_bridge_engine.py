@@ -749,3 +749,34 @@ def test_82_reads_the_drive_mode_not_a_remembered_one() -> None:
     ok(engine, "1S81=1")  # ... then profile position, behind its back
     assert node.statusword & 0x1400 == 0x0400  # target reached, no set-point acknowledge
     assert ok(engine, "1R82") == "1"
+
+
+def test_a_multi_axis_move_that_times_out_is_halted() -> None:
+    """The engine's safety-net timeout cancels a slave/master move part-way: every
+    axis of the request is then halted, not left moving."""
+
+    class StallingNode(FakeNode):
+        stall = 0.0
+
+        def download(self, index: int, subindex: int, data: bytes, force_segment: bool = False) -> None:
+            if index == 0x607A and self.stall:
+                time.sleep(self.stall)
+                self.stall = 0.0
+            super().download(index, subindex, data, force_segment)
+
+    engine, nodes = make()
+    master = enabled(engine, nodes, 1)
+    enabled(engine, nodes, 2)
+    slave = StallingNode(2)
+    slave.state = "OE"
+    engine.axes[2].port.node = slave  # type: ignore[union-attr]
+    ok(engine, "1S29=2")
+    ok(engine, "1S02=4")
+    engine.job_timeout = 0.3
+    slave.stall = 0.6  # the slave's target write outlasts the request's time
+    assert run_async(engine, "1S00=1").status is Status.NAK
+    deadline = time.monotonic() + 5
+    while not (master.values.get((0x6040, 0), 0) & 0x100 and slave.values.get((0x6040, 0), 0) & 0x100):
+        assert time.monotonic() < deadline, "the axes were not halted"
+        time.sleep(0.01)
+    engine.close()
