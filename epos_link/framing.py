@@ -136,14 +136,8 @@ class FrameDecoder:
     def _report_end(self) -> None:
         """At end of input: raise what is left, or return when nothing is."""
         if self._in_frame:
-            rest = bytes(self._raw + self._buf)
-            self._start_scan()
-            self._buf.clear()
             # A lone DLE in the cut frame may hide the next frame's sync (see _finish).
-            hidden = self._hidden_sync(rest, b"")
-            if hidden >= 0:
-                self._buf += rest[hidden + 1:]
-                rest = rest[:hidden + 1]
+            rest = self._give_back_hidden(bytes(self._raw + self._buf), len(self._buf))
             raise TruncatedFrameError(f"input ended inside a frame ({len(rest)} bytes)", rest)
         leftover = bytes(self._junk + self._buf)
         self._junk.clear()
@@ -312,10 +306,7 @@ class FrameDecoder:
             # sync and hides it ("90 | 90 02" read as an escaped 0x90, then 0x02).
             # Since this frame is bad anyway, read "90 90 02" the other way:
             # give back the bytes from its second DLE, so that sync is found.
-            hidden = self._hidden_sync(raw)
-            if hidden >= 0:
-                self._buf[:0] = raw[hidden + 1:]
-                raw = raw[:hidden + 1]
+            raw = self._give_back_hidden(raw, 0)
             self._carry_dle = raw.endswith(_DLE_DLE)
             raise CrcError(
                 f"CRC 0x{received:04X} received, 0x{expected:04X} computed", raw, frame)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import struct
 import threading
-from typing import Any, Optional
+from typing import Any
 
 import canopen
 from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
@@ -115,4 +115,4 @@ def connect_virtual(channel: str, **kwargs: Any) -> canopen.Network:
     return network
 
 
-__all__ = ["CanGateway", "connect_virtual", "SDO_TIMEOUT_ABORT", "WRITE_OBJECT_CS", "Optional"]
+__all__ = ["CanGateway", "connect_virtual", "SDO_TIMEOUT_ABORT", "WRITE_OBJECT_CS"]

@@ -17,10 +17,9 @@ from typing import Any, Iterator, Optional
 
 from ..capture import Capture, CaptureFormatError, Direction, parse_hex, read_capture
 from ..codes import describe_error, opcode_name, OpCode
-from ..errors import CrcError, EposError, RemoteProtocolError
+from ..errors import CrcError, RemoteProtocolError
 from ..framing import NEED_DATA, Frame, FrameDecoder
 from ..messages import (
-    Answer,
     InitiateSegmentedReadAnswer,
     InitiateSegmentedWrite,
     Message,
@@ -251,5 +250,4 @@ def run(args: argparse.Namespace) -> int:
     return 1 if damaged else 0
 
 
-__all__ = ["Decoded", "decode_bytes", "decode_capture", "describe_frame", "add_arguments", "run",
-           "EposError", "Answer"]
+__all__ = ["Decoded", "decode_bytes", "decode_capture", "describe_frame", "add_arguments", "run"]
