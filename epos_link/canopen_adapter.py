@@ -71,9 +71,21 @@ class EposSdoClient(SdoBase):
             raise SdoCommunicationError(str(exc)) from exc
 
     def _size(self, index: int, subindex: int) -> Optional[int]:
-        """The object's size from the dictionary: ReadObject always returns 4 bytes."""
+        """How to read an object: its size in bytes, or None for a segmented read.
+
+        ReadObject (guide 2.1.1.1) is the transfer for values of up to 4 bytes,
+        the one maxon's own library uses, and the only read the guide documents
+        through the gateway for other nodes; its answer always carries 4 bytes,
+        cut here to the object's size. So: a fixed size from the dictionary
+        decides; a string or domain (no fixed size) is read segmented; an object
+        the dictionary does not describe is read with ReadObject and its 4 data
+        bytes are returned. Describe larger objects in the dictionary (pass the
+        device's EDS) to read them whole.
+        """
         var = self.od.get_variable(index, subindex)
-        if var is not None and var.fixed_size:
+        if var is None:
+            return 4
+        if var.fixed_size:
             return len(var) // 8
         return None
 
