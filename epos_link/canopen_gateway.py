@@ -105,7 +105,8 @@ class NmtView:
         return known
 
     def state(self, node: int) -> int:
-        """canopen's state code: 0 (unknown), 4, 5 or 127."""
+        """canopen's state code: 0 (unknown), 4, 5 or 127. Node 0 (all nodes):
+        what the broadcast commands said."""
         with self._lock:
             known = self._nodes.get(node, self._all)
             if known.resetting:
@@ -120,6 +121,8 @@ class NmtView:
 
     def answered(self, node: int) -> None:
         """The node answered an SDO request: it is alive and not STOPPED."""
+        if node == 0:  # "all nodes" answers nothing; the EPOS4 itself has its own id
+            return
         with self._lock:
             known = self._get(node)
             known.answered, known.resetting = True, False
@@ -193,6 +196,8 @@ class GatewayNmt(NmtMaster):
 
     def wait_for_bootup(self, timeout: float = 10) -> None:
         """After a reset sent through the gateway: wait until the node answers SDO."""
+        if self.id == 0:
+            raise limitation("the boot-up messages of all nodes (wait on each node's nmt)")
         if not self._view.resetting(self.id):
             raise limitation("the boot-up message (wait_for_bootup() through the gateway waits "
                              "for a node reset through it to answer SDO again; no reset was sent)")
@@ -239,6 +244,8 @@ class GatewayNetwork(canopen.Network):
         super().__init__(bus=None)
         self.client = client
         self.scanner = GatewayScanner(self)
+        self.nmt = GatewayNmt(0, client)  # canopen's broadcast NmtMaster(0)
+        self.nmt.network = self
 
     def connect(self, *args: Any, **kwargs: Any) -> "GatewayNetwork":
         raise limitation("a CAN bus connection")

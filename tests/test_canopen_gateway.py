@@ -65,7 +65,12 @@ def test_broadcast_through_network_nmt(client: EposClient) -> None:
     node = canopen_adapter.connect_node(client, 2)
     node.network.nmt.state = "OPERATIONAL"  # canopen's NmtMaster(0): all nodes
     assert node.nmt.state == "OPERATIONAL"
-    node.network.nmt.state = "PRE-OPERATIONAL"
+    assert node.network.nmt.state == "OPERATIONAL"
+    node.network.nmt.state = "RESET"
+    with pytest.raises(canopen_adapter.GatewayLimitationError, match="all nodes"):
+        node.network.nmt.wait_for_bootup(1)
+    node.nmt.wait_for_bootup(1)  # each node's own wait works after a broadcast reset
+    assert node.nmt.state == "PRE-OPERATIONAL"
 
 
 def test_a_refused_nmt_command_changes_no_state(client: EposClient) -> None:

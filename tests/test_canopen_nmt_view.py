@@ -60,6 +60,16 @@ def test_view_broadcasts_reach_known_nodes_and_nodes_seen_later() -> None:
     assert view.state(7) == PRE_OPERATIONAL and view.state(2) == UNKNOWN
 
 
+def test_view_node_0_is_what_broadcasts_said() -> None:
+    view = NmtView()
+    assert view.state(0) == UNKNOWN
+    view.sent(0, STOP)
+    view.answered(0)  # nobody answers for "all nodes"
+    assert view.state(0) == STOPPED
+    view.sent(2, START)
+    assert view.state(0) == STOPPED and view.state(2) == OPERATIONAL
+
+
 def test_view_unknown_commands_change_nothing() -> None:
     view = NmtView()
     view.answered(2)
