@@ -1,7 +1,7 @@
 """What canopen's network services become through an EPOS4 USB/RS232 gateway.
 
 The gateway (guide chapter 5) forwards SDO (ReadObject/WriteObject and
-segmented reads) and NMT commands (SendNMTService, guide 2.1.3.1). It forwards
+segmented reads) and NMT commands (SendNMTService, guide Table 3-14). It forwards
 no CAN frame towards the host: no heartbeat, no boot-up message, no EMCY, no
 PDO. This module gives canopen's ``Network``, ``NmtMaster`` and
 ``NodeScanner`` the meaning they can have with that much:
@@ -28,11 +28,16 @@ Commands to node 0 (all nodes) apply to every node, those seen later included.
 A command sent by someone else (another master, a power cycle) is not seen.
 
 ``wait_for_bootup(timeout)`` means: after a reset sent through this gateway,
-wait until the node answers SDO again (it reads 1000h, the device type, a
-mandatory object of every CANopen node; the probe of ``epos-link scan``). It raises canopen's ``NmtError`` when the
-node has not answered within ``timeout`` (plus at most one request timeout),
-and :class:`GatewayLimitationError` when no reset was sent, since the boot-up
-message itself never reaches the host.
+wait until the node answers SDO again: it reads 1000h (the device type, a
+mandatory object of every CANopen node, as ``epos-link scan`` does) until an
+answer comes. Any failure counts as "still booting": the gateway's SDO
+timeout, a link timeout, even a dropped link (resetting the EPOS4 at the
+other end of the cable may drop its USB link; the client reopens the link on
+the next request). It
+raises canopen's ``NmtError`` when the node has not answered within
+``timeout`` (plus at most one request timeout), and
+:class:`GatewayLimitationError` when no reset was sent through this link,
+since the boot-up message itself never reaches the host.
 
 ``network.scanner.search(limit)`` probes node ids 1..limit as ``epos-link
 scan`` does (:meth:`EposClient.scan`: ReadObject 1000h, short timeout, no
