@@ -8,8 +8,11 @@ are the internal parameters of the command table (spec 4), kept here by TCP
 command number (2, 5, 6, 19..63, 80) in their stored form: an integer, and for
 the ``*`` ones ``round(user value * factor)`` (spec 4 footnote).
 
-The table is read from a TOML file; ``tcp_bridge/example_axes.toml`` documents
-every key. Parameters changed with S commands are kept in a JSON state file,
+The table is read from a TOML file by :mod:`tcp_bridge.config` (every
+mistake is one line naming the file, the table and the key);
+``tcp_bridge/example_axes.toml`` documents every key. :func:`_validate` holds
+the rules between axes, for tables built in code too; a table without axes
+is refused. Parameters changed with S commands are kept in a JSON state file,
 written atomically (temporary file, fsync, rename) after every change and
 overlaid on the TOML values at start, as the controller keeps them in its
 arrays across restarts.
@@ -20,23 +23,17 @@ read from 6064h, detailed error from 603Fh, see :mod:`tcp_bridge.engine`).
 """
 from __future__ import annotations
 
-import sys
+import math
 from dataclasses import dataclass, field
-from decimal import Decimal
 from enum import IntEnum
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Dict, Final, Mapping, Optional, Tuple, Union
 
 from .commands import COMMANDS, CommandKind, CommandSpec
-from .errors import BridgeError, InvalidCommand
+from .errors import BridgeError
 from .protocol import MAX_AXIS
-from .units import Number, Scaling, parse_value, stored_parameter
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on 3.10 only
-    import tomli as tomllib
+from .units import Number, Scaling, stored_parameter
 
 
 class ConfigError(BridgeError, ValueError):
@@ -158,7 +155,7 @@ class AxisConfig:
 
 @dataclass(frozen=True)
 class Settings:
-    """Timing and behaviour of the command layer (the ``[bridge]`` table)."""
+    """Timing and behaviour of the command layer and the server (the ``[bridge]`` table)."""
 
     ack_timeout: float = 2.0  # bound for the ACK of 00 and 04 (drive acceptance)
     state_timeout: float = 1.0  # bound for one state machine step / mode change
@@ -167,14 +164,28 @@ class Settings:
     poll_interval: float = 0.002  # pause between statusword polls
     debug: bool = False  # initial value of command 91
     state_file: Optional[Path] = None
+    # Server (tcp_bridge.server): None = the server's default (60 s, see its docstring).
+    idle_timeout: Optional[float] = None
+    # Client networks served (tcp_bridge.access); None = the default, loopback only.
+    allow: Optional[Tuple[Any, ...]] = None
+    # Fail-fast buses (tcp_bridge.health): seconds between probes of a silent bus.
+    probe_interval: float = 0.25
 
     def __post_init__(self) -> None:
-        for name in ("ack_timeout", "state_timeout", "reset_timeout"):
-            if not getattr(self, name) > 0:
+        for name in ("ack_timeout", "state_timeout", "reset_timeout", "probe_interval"):
+            if not _positive(getattr(self, name)):
                 raise ConfigError(f"[bridge] {name} must be positive")
         for name in ("reset_delay", "poll_interval"):
-            if not getattr(self, name) >= 0:
+            value = getattr(self, name)
+            if not (_positive(value) or value == 0):
                 raise ConfigError(f"[bridge] {name} must not be negative")
+        if self.idle_timeout is not None and not _positive(self.idle_timeout):
+            raise ConfigError("[bridge] idle_timeout must be positive")
+
+
+def _positive(value: Any) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value) and value > 0)
 
 
 @dataclass(frozen=True)
@@ -184,6 +195,7 @@ class AxisTable:
     axes: Mapping[int, AxisConfig]
     buses: Mapping[str, BusConfig]
     settings: Settings = Settings()
+    source: str = field(default="axis table", compare=False)  # file name, for messages
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -194,147 +206,62 @@ class AxisTable:
 
     @classmethod
     def load(cls, path: Union[str, Path]) -> "AxisTable":
-        """Read a TOML axis table; :class:`ConfigError` names the problem."""
-        path = Path(path)
-        try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise ConfigError(f"cannot read axis table {path}: {exc.strerror or exc}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: {exc}") from None
-        return cls.from_mapping(data, base_dir=path.parent, source=str(path))
+        """Read a TOML axis table; :class:`ConfigError` names file, table and key."""
+        from .config import load
+
+        return load(Path(path))
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], *, base_dir: Optional[Path] = None,
                      source: str = "axis table") -> "AxisTable":
-        unknown = set(data) - {"bridge", "bus", "axis"}
-        if unknown:
-            raise ConfigError(f"{source}: unknown top-level keys {sorted(unknown)}")
-        settings = _settings(dict(data.get("bridge", {})), base_dir, source)
-        buses = {}
-        for name, opts in dict(data.get("bus", {})).items():
-            if name not in BUS_NAMES.values():
-                raise ConfigError(f"{source}: bus {name!r} is not one of {sorted(BUS_NAMES.values())}")
-            opts = dict(opts)
-            backend = opts.pop("backend", None)
-            if not isinstance(backend, str):
-                raise ConfigError(f"{source}: [bus.{name}] needs backend = \"canopen\"|\"epos\"|\"sim\"")
-            buses[name] = BusConfig(name, backend, MappingProxyType(opts))
-        axes: Dict[int, AxisConfig] = {}
-        for position, row in enumerate(data.get("axis", []), start=1):
-            axis = _axis(dict(row), position, source)
-            if axis.addr in axes:
-                raise ConfigError(f"{source}: AxAddr {axis.addr} appears twice")
-            axes[axis.addr] = axis
-        return cls(MappingProxyType(dict(sorted(axes.items()))), MappingProxyType(buses), settings)
+        from .config import from_mapping
+
+        return from_mapping(data, base_dir=base_dir, source=source)
 
 
-def _settings(raw: Dict[str, Any], base_dir: Optional[Path], source: str) -> Settings:
-    state = raw.pop("state_file", None)
-    known = {f for f in Settings.__dataclass_fields__ if f != "state_file"}
-    unknown = set(raw) - known
-    if unknown:
-        raise ConfigError(f"{source}: unknown [bridge] keys {sorted(unknown)}")
-    state_path = None
-    if state:
-        state_path = Path(state)
-        if not state_path.is_absolute() and base_dir is not None:
-            state_path = base_dir / state_path
-    try:
-        return Settings(**raw, state_file=state_path)
-    except TypeError as exc:
-        raise ConfigError(f"{source}: [bridge]: {exc}") from None
-
-
-_AXIS_KEYS: Final = {"addr", "device", "internal", "bus_offset", "node_id", "position_factor",
-                     "parameters", "increments_per_revolution"}
 IPR_KEY: Final = "increments_per_revolution"
 
 
-def _axis(row: Dict[str, Any], position: int, source: str) -> AxisConfig:
-    where = f"{source}: axis #{position}"
-    unknown = set(row) - _AXIS_KEYS
-    if unknown:
-        raise ConfigError(f"{where}: unknown keys {sorted(unknown)}")
-    addr = row.get("addr", position)  # spec 3.1: filled in from the position
-    device = row.get("device", 0)
-    if isinstance(device, str):
-        if device.lower() not in DEVICE_NAMES:
-            raise ConfigError(f"{where}: device {device!r} is not one of {sorted(DEVICE_NAMES)}")
-        device = DEVICE_NAMES[device.lower()]
-    try:
-        device = DeviceCode(device)
-        bus_offset = BusOffset(row.get("bus_offset", 0))
-    except ValueError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
-    factor = row.get("position_factor", 1)
-    if isinstance(factor, bool) or not isinstance(factor, int) or factor <= 0:
-        raise ConfigError(f"{where}: position_factor must be a positive integer")
-    internal = row.get("internal", False)
-    node_id = row.get("node_id", 0)
-    if not isinstance(internal, bool) or not isinstance(addr, int) or not isinstance(node_id, int):
-        raise ConfigError(f"{where}: addr and node_id are integers, internal is true/false")
-    ipr = row.get(IPR_KEY)
-    if ipr is not None and (isinstance(ipr, bool) or not isinstance(ipr, int) or ipr <= 0):
-        raise ConfigError(f"{where} (AxAddr {addr}): {IPR_KEY} must be a positive integer")
-    params = _parameters(dict(row.get("parameters", {})), factor, f"{where} (AxAddr {addr})")
-    return AxisConfig(addr, device, internal, bus_offset, node_id, factor,
-                      MappingProxyType(params), ipr)
-
-
-def _parameters(raw: Dict[str, Any], factor: int, where: str) -> Dict[int, Number]:
-    out: Dict[int, Number] = {}
-    for key, value in raw.items():
-        cmd = PARAMETER_NUMBERS.get(key)
-        if cmd is None and key.isdigit() and int(key) in PARAMETER_NAMES:
-            cmd = int(key)
-        if cmd is None or cmd == 19:
-            raise ConfigError(f"{where}: unknown parameter {key!r} (the device code is 'device')")
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: parameter {key} must be a number")
-        text = str(value) if isinstance(value, int) else format(Decimal(repr(value)), "f")
-        spec = parameter_spec(cmd)
-        try:
-            user = parse_value(spec, text)
-            to_stored(spec, user, factor)  # range check of the scaled value
-        except InvalidCommand as exc:
-            raise ConfigError(f"{where}: parameter {key}: {exc}") from None
-        out[cmd] = user
-    return out
-
-
 def _validate(table: AxisTable) -> None:
+    """The rules between axes; each message names the file, the axis table and the key."""
+    src = table.source
+    if not table.axes:
+        raise ConfigError(f"{src}: no axes: add an [[axis]] table for each drive "
+                          "(see example_axes.toml)")
     seen_nodes: Dict[Tuple[str, int], int] = {}
     external_seen = False
     for addr, axis in table.axes.items():
+        where = f"{src}: [[axis]] AxAddr {addr}"
         if not 1 <= addr <= MAX_AXIS:
-            raise ConfigError(f"AxAddr {addr} is not 1..{MAX_AXIS} (spec 3)")
+            raise ConfigError(f"{where}: addr: AxAddr {addr} is not 1..{MAX_AXIS} (spec 3)")
         # Spec 3.2: "make sure that all marked internal axes are at the beginning".
         if axis.internal and external_seen:
-            raise ConfigError(f"internal axis {addr} follows a non-internal axis (spec 3.2)")
+            raise ConfigError(f"{where}: internal: internal axis {addr} follows a "
+                              "non-internal axis (spec 3.2)")
         external_seen = external_seen or not axis.internal
         if axis.device is DeviceCode.C_DC_MAXON_EPOS4 and axis.increments_per_revolution is None:
-            raise ConfigError(f"axis {addr}: device 5 (maxon EPOS4) needs {IPR_KEY}: the motor "
+            raise ConfigError(f"{where}: {IPR_KEY}: device 5 (maxon EPOS4) needs it: the motor "
                               "encoder's increments per motor revolution (4 x pulses for an "
                               "incremental encoder), because an EPOS4 takes velocities in rpm")
         if not axis.has_node:
             if not axis.internal:
-                raise ConfigError(f"axis {addr}: node_id 0 is only allowed for internal axes")
+                raise ConfigError(f"{where}: node_id: 0 is only allowed for internal axes")
             continue
         limit = 65535 if axis.bus_offset is BusOffset.ETHERCAT else 127
         if not 1 <= axis.node_id <= limit:
-            raise ConfigError(f"axis {addr}: node_id {axis.node_id} is not 1..{limit} (spec 3.4)")
+            raise ConfigError(f"{where}: node_id: {axis.node_id} is not 1..{limit} (spec 3.4)")
         if axis.bus not in table.buses:
-            raise ConfigError(f"axis {addr} is on bus {axis.bus!r} (bus_offset "
+            raise ConfigError(f"{where}: bus_offset: the axis is on bus {axis.bus!r} (bus_offset "
                               f"{int(axis.bus_offset)}) but there is no [bus.{axis.bus}]")
         key = (axis.bus, axis.node_id)
         if key in seen_nodes:
-            raise ConfigError(f"axes {seen_nodes[key]} and {addr} share node {axis.node_id} "
-                              f"on {axis.bus}")
+            raise ConfigError(f"{where}: node_id: axes {seen_nodes[key]} and {addr} share node "
+                              f"{axis.node_id} on {axis.bus}")
         seen_nodes[key] = addr
         slave = axis.parameters.get(29, 0)
         if slave and (slave == addr or slave not in table.axes):
-            raise ConfigError(f"axis {addr}: slave axis {slave} is not another configured axis")
+            raise ConfigError(f"{where}: parameters.slave_axis: slave axis {slave} is not "
+                              "another configured axis")
 
 
 def simulated_table(count: int = 1, *, state_file: Optional[Path] = None,

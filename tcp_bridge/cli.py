@@ -2,7 +2,8 @@
 
 ::
 
-    tcp-bridge serve --config axes.toml [--bind ADDR] [--port 1912] [--maintenance-port 1913]
+    tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
+                     [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
     tcp-bridge serve --simulate [--axes N]
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
 
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import logging
 import math
 import os
@@ -24,11 +26,17 @@ import signal
 import socket
 import sys
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence
 
+from .access import LOOPBACK, Network, is_loopback_bind, parse_network
+from .access import describe as describe_networks
 from .axes import AxisTable, ConfigError, Settings, simulated_table
 from .errors import BridgeError, MalformedReply
+from .parameters import check_writable
 from .protocol import REPLY_SIZE, Reply, Status, decode_reply
+
+if TYPE_CHECKING:
+    from .server import ServerOptions
 
 PROG = "tcp-bridge"
 
@@ -82,6 +90,13 @@ def positive_seconds(text: str) -> float:
 # --- serve ---------------------------------------------------------------------------
 
 
+def network(text: str) -> Network:
+    try:
+        return parse_network(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _table(args: argparse.Namespace) -> AxisTable:
     if args.simulate:
         options = {}
@@ -92,24 +107,49 @@ def _table(args: argparse.Namespace) -> AxisTable:
         table = simulated_table(args.axes, bus_options=options)
     else:
         table = AxisTable.load(args.config)
-    if args.state_file is not None or args.debug:
-        s = table.settings
-        table = AxisTable(table.axes, table.buses, Settings(
-            s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay, s.poll_interval,
-            s.debug or args.debug,
-            Path(args.state_file) if args.state_file else s.state_file))
+    changes: Dict[str, Any] = {}
+    if args.debug:
+        changes["debug"] = True
+    if args.state_file is not None:
+        path = Path(args.state_file)
+        try:
+            check_writable(path)
+        except OSError as exc:
+            raise ConfigError(f"--state-file {path} cannot be written "
+                              f"({exc.strerror or exc})") from None
+        changes["state_file"] = path
+    if args.allow:
+        changes["allow"] = tuple(args.allow)
+    if args.idle_timeout is not None:
+        changes["idle_timeout"] = args.idle_timeout
+    if changes:
+        table = dataclasses.replace(table, settings=dataclasses.replace(table.settings, **changes))
     return table
+
+
+def _server_options(args: argparse.Namespace, settings: Settings) -> "ServerOptions":
+    from .server import DEFAULT_IDLE_TIMEOUT, ServerOptions
+
+    allow = settings.allow if settings.allow is not None else LOOPBACK
+    if settings.allow is None and not is_loopback_bind(args.bind):
+        # Listening on a network interface with the default (loopback-only)
+        # allow-list would refuse every client that interface exists for.
+        raise ConfigError(f"--bind {args.bind} serves other hosts: say which with --allow CIDR "
+                          "(or [bridge] allow); --allow 0.0.0.0/0 allows any IPv4 host")
+    ports = [args.port] + ([args.maintenance_port] if args.maintenance_port >= 0 else [])
+    idle = settings.idle_timeout if settings.idle_timeout is not None else DEFAULT_IDLE_TIMEOUT
+    return ServerOptions(host=args.bind, ports=ports, max_connections=args.max_connections,
+                         idle_timeout=idle, allow=allow)
 
 
 async def _serve(args: argparse.Namespace) -> int:
     from .engine import build_engine
-    from .server import BridgeServer, ServerOptions
+    from .server import BridgeServer
 
     table = _table(args)
+    options = _server_options(args, table.settings)
+    ports = list(options.ports)
     engine = await asyncio.get_running_loop().run_in_executor(None, build_engine, table)
-    ports = [args.port] + ([args.maintenance_port] if args.maintenance_port >= 0 else [])
-    options = ServerOptions(host=args.bind, ports=ports, max_connections=args.max_connections,
-                            idle_timeout=args.idle_timeout)
     server = BridgeServer(engine, options)
     try:
         await server.start()
@@ -142,7 +182,8 @@ async def _serve(args: argparse.Namespace) -> int:
     where = ", ".join(f"{h}:{p} ({names[i] if i < 2 else 'extra'})"
                       for i, (h, p) in enumerate(server.addresses))
     axes = ", ".join(f"{a.addr}={a.bus}/{a.node_id}" for a in table.axes.values())
-    print(f"{PROG}: listening on {where}; axes {axes or '(none)'}", flush=True)
+    print(f"{PROG}: listening on {where}; axes {axes or '(none)'}; clients from "
+          f"{describe_networks(options.allow)}", flush=True)
     await stop.wait()
     print(f"{PROG}: shutting down (a second signal exits at once)", flush=True)
     await server.close()
@@ -214,7 +255,8 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--sim-link", choices=["inprocess", "pty"], help=argparse.SUPPRESS)
     s.add_argument("--sim-baud", type=int, help=argparse.SUPPRESS)
     s.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
-                   help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
+                   help="address to listen on (default 127.0.0.1; 0.0.0.0 for all, "
+                        "with --allow)")
     s.add_argument("--port", type=port, default=1912,
                    help="NICOS/EPICS port (default 1912; 0: any free port)")
     s.add_argument("--maintenance-port", type=optional_port, default=1913,
@@ -222,7 +264,13 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--max-connections", type=positive_int, default=64, metavar="N",
                    help="simultaneous clients; more are closed at once (default 64)")
     s.add_argument("--idle-timeout", type=positive_seconds, default=None, metavar="SECONDS",
-                   help="close a connection without a request for this long (default: never)")
+                   help="close a connection that sent no request for this long; bytes that "
+                        "do not complete a request do not count (default 60, or [bridge] "
+                        "idle_timeout)")
+    s.add_argument("--allow", type=network, action="append", metavar="CIDR",
+                   help="serve clients from this network, e.g. 10.1.2.0/24 (repeatable; "
+                        "default: [bridge] allow, else loopback only); others are closed "
+                        "unanswered and logged")
     s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
     s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
     s.add_argument("-v", "--verbose", action="store_true", help="log connections")

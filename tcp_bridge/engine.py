@@ -36,15 +36,18 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from typing import (Any, Callable, Dict, Generator, List, Mapping, Optional, Sequence, Tuple,
                     Union)
 
-from .axes import AxisConfig, AxisTable, parameter_spec
+from .axes import AxisConfig, AxisTable, ConfigError, parameter_spec
 from .parameters import ParameterStore
 from .commands import CommandSpec, resolve
 from .errors import InvalidCommand
+from .failfast import BusGuard, log_change
+from .health import BusHealth
 from .moves import Follower, plan_move, stored_profile
 from .operations import AxisOps
 from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
@@ -80,6 +83,9 @@ class Job:
     gated: bool = False  # companions start only after this job succeeded (see steps())
     precheck: Tuple["Job", ...] = field(default_factory=tuple)  # before anything moves
     stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
+    # A stop or halt: tried even on a bus declared silent (tcp_bridge.health), because
+    # a NAK without trying could leave an axis moving; it costs one timeout at most.
+    urgent: bool = False
 
     def __call__(self) -> bytes:
         return self.run()
@@ -137,7 +143,9 @@ class Engine:
 
     def __init__(self, table: AxisTable, nodes: Mapping[int, Any], *,
                  params: Optional[ParameterStore] = None, backends: Sequence[Any] = (),
-                 job_timeout: float = 60.0, **cia402_options: Any) -> None:
+                 job_timeout: float = 60.0, link_probes: Mapping[str, Callable[[], Any]] = {},
+                 health_clock: Callable[[], float] = time.monotonic,
+                 **cia402_options: Any) -> None:
         self.table = table
         self.params = params if params is not None else ParameterStore(table)
         self.debug = table.settings.debug
@@ -147,18 +155,26 @@ class Engine:
         s = table.settings
         timing = Timing(s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay,
                         s.poll_interval)
+        # Fail-fast buses (tcp_bridge.health, tcp_bridge.failfast): one guard per bus.
+        self.guards: Dict[str, BusGuard] = {
+            bus: BusGuard(BusHealth(bus, health_clock, probe_interval=s.probe_interval,
+                                    on_change=log_change),
+                          {a.node_id: nodes[a.addr] for a in table.axes.values()
+                           if a.bus == bus and a.addr in nodes},
+                          link_probes.get(bus))
+            for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
+        }
         self.axes: Dict[int, AxisOps] = {}
         for addr, axis in table.axes.items():
             node = nodes.get(addr)
             port = None
             if node is not None:
                 port = SdoPort(node, name=f"axis {addr} ({axis.bus} node {axis.node_id})",
-                               debug=lambda: self.debug)
+                               debug=lambda: self.debug,
+                               observer=self.guards[axis.bus].observer(axis.node_id))
             self.axes[addr] = AxisOps(axis, self.params, port, timing, **cia402_options)
         self._workers: Dict[str, BusWorker] = {
-            bus: BusWorker(bus)
-            for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
-        }
+            bus: BusWorker(bus, guard.maintain) for bus, guard in self.guards.items()}
 
     # -- planning (event loop, no I/O) -------------------------------------------------
 
@@ -224,8 +240,10 @@ class Engine:
         gated = bool(companions) and not stopping
         precheck = tuple(self._axis_job(request, c.ops, self._require_enabled(c.ops))
                          for c in companions if c.ops is not None) if gated else ()
+        if stopping:
+            companions = tuple(replace(c, urgent=True) for c in companions)
         return Job(request, run, bus=bus, ops=ops, companions=companions,
-                   gated=gated, precheck=precheck, stop=stop)
+                   gated=gated, precheck=precheck, stop=stop, urgent=stopping)
 
     def _plan_slave_move(self, request: Request, master: AxisOps,
                          how: int) -> Tuple[Tuple[Follower, ...], Tuple[Job, ...]]:
@@ -281,7 +299,7 @@ class Engine:
                   followers: Sequence[Follower] = ()) -> Optional[Job]:
         if ops.drive is None:
             return None
-        return self._axis_job(request, ops, plan_move(ops, 8, followers))
+        return replace(self._axis_job(request, ops, plan_move(ops, 8, followers)), urgent=True)
 
     @staticmethod
     def _require_enabled(ops: AxisOps) -> Callable[[], Any]:
@@ -321,14 +339,33 @@ class Engine:
             raise
 
     def _submit(self, job: Job) -> "asyncio.Future[bytes]":
+        future: asyncio.Future[bytes]
         if job.bus is not None:
-            return self._workers[job.bus].submit(job)
-        future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+            refusal = self._refusal(job)
+            if refusal is None:
+                return self._workers[job.bus].submit(self._guarded(job))
+            future = asyncio.get_running_loop().create_future()
+            future.set_exception(refusal)  # NAK at once: nothing queued, nothing sent
+            return future
+        future = asyncio.get_running_loop().create_future()
         try:
             future.set_result(job())
         except Exception as exc:
             future.set_exception(exc)
         return future
+
+    # Fail-fast buses (tcp_bridge.health): a job for a silent bus or node is refused
+    # before it is queued, and again when its turn comes; stops and halts are tried.
+
+    def _refusal(self, job: Job) -> Optional[Exception]:
+        if job.bus is None or job.urgent:
+            return None
+        return self.guards[job.bus].refusal(_node_of(job))
+
+    def _guarded(self, job: Job) -> Callable[[], bytes]:
+        if job.bus is None:
+            return job
+        return self.guards[job.bus].guarded(job, _node_of(job), check=not job.urgent)
 
     def execute_sync(self, request: Request) -> bytes:
         """Run a request in the caller's thread (tests, tools); raises on failure."""
@@ -336,7 +373,7 @@ class Engine:
         try:
             batch = next(plan)
             while True:
-                batch = plan.send([_outcome(j) for j in batch])
+                batch = plan.send([_outcome(self._guarded(j)) for j in batch])
         except StopIteration as done:
             return done.value  # type: ignore[no-any-return]
 
@@ -352,7 +389,11 @@ class Engine:
                 log.exception("closing backend %r failed", backend)
 
 
-def _outcome(job: Job) -> Outcome:
+def _node_of(job: Job) -> Optional[int]:
+    return job.ops.config.node_id if job.ops is not None else None
+
+
+def _outcome(job: Callable[[], bytes]) -> Outcome:
     try:
         return job()
     except Exception as exc:
@@ -366,17 +407,25 @@ def build_engine(table: AxisTable, *, params: Optional[ParameterStore] = None,
 
     nodes: Dict[int, Any] = {}
     backends: List[Any] = []
+    probes: Dict[str, Callable[[], Any]] = {}
     try:
         for name, bus in table.buses.items():
             axes: List[AxisConfig] = [a for a in table.axes.values() if a.bus == name and a.has_node]
             if not axes:
                 continue
-            backend = open_backend(bus, axes)
+            try:
+                backend = open_backend(bus, axes)
+            except ConfigError:
+                raise
+            except (TypeError, ValueError) as exc:  # a bus option of the wrong type or value
+                raise ConfigError(f"{table.source}: [bus.{name}]: {exc}") from None
             backends.append(backend)
+            if callable(getattr(backend, "probe", None)):
+                probes[name] = backend.probe
             for axis in axes:
                 nodes[axis.addr] = backend.node(axis.node_id)
     except BaseException:
         for backend in backends:
             backend.close()
         raise
-    return Engine(table, nodes, params=params, backends=backends, **options)
+    return Engine(table, nodes, params=params, backends=backends, link_probes=probes, **options)

@@ -7,7 +7,9 @@
      |    |                               command, bad value, not readable / not writable
      |    +-- LineTooLong                 a request line above the splitter's limit
      +-- DeviceFailure                    reply NAK: the device transfer failed or the
-     |                                    node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
+     |    |                               node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
+     |    +-- SilentLink                  reply NAK at once: the bus's device or the node
+     |                                    is declared silent (tcp_bridge.health); nothing sent
      +-- ReplyOverflow (ValueError)       reply NAK: a value read from the device cannot be
      |                                    written into the 30-byte reply (spec 2.2.2)
      +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
@@ -84,6 +86,11 @@ class DeviceFailure(BridgeError):
     def __init__(self, message: str, code: Optional[int] = None) -> None:
         super().__init__(message)
         self.code = code
+
+
+class SilentLink(DeviceFailure):
+    """Refused without a transfer: the bus's device, or the node, was declared silent
+    and no probe has heard it since (:mod:`tcp_bridge.health`, fail-fast buses)."""
 
 
 class ReplyOverflow(BridgeError, ValueError):

@@ -15,8 +15,10 @@ fsync. Snapshots that pile up while a write is in progress are coalesced,
 the newest wins; :meth:`ParameterStore.close` (called by the engine at
 shutdown) writes the last one.
 
-A state file that cannot be written (disk full, directory gone, no rights)
-does not undo the change and does not turn the reply into NAK: the value is
+The state file is checked at start-up: one that cannot be written (its
+directory cannot be created, no rights, not a regular file) is refused with
+:class:`~tcp_bridge.axes.ConfigError`. One that becomes unwritable later (disk
+full, directory gone) does not undo the change and does not turn the reply into NAK: the value is
 in the arrays, and for a drive parameter in the drive, so the command *was*
 executed (spec 2.2.2: NAK means not executed). The failure is logged at
 ERROR with the file's name every time; the next successful write persists
@@ -67,6 +69,11 @@ class ParameterStore:
         self._overrides: Dict[int, Dict[int, int]] = {addr: {} for addr in table.axes}
         self._writer: Optional[StateFileWriter] = None
         if self.state_file is not None:
+            try:
+                check_writable(self.state_file)  # at start-up, not at the first S command
+            except OSError as exc:
+                raise ConfigError(f"{table.source}: [bridge] state_file: {self.state_file} "
+                                  f"cannot be written ({exc.strerror or exc})") from None
             self._load()
             self._writer = StateFileWriter(self._save, str(self.state_file))
 
@@ -254,6 +261,20 @@ class StateFileWriter:
                       "a later write succeeds", self._name, exc)
         except Exception:  # a bug: never kill the writer thread
             log.exception("state file %s: write failed", self._name)
+
+
+def check_writable(path: Path) -> None:
+    """OSError unless :func:`write_atomically` can write ``path``: its directory is
+    created if missing, and a temporary file is made there and removed."""
+    if path.exists() and not path.is_file():
+        raise IsADirectoryError(21, "not a regular file", str(path))
+    existing = next((p for p in path.parents if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise NotADirectoryError(20, f"{existing} is not a directory", str(existing))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    os.unlink(tmp)
 
 
 def write_atomically(path: Path, text: str) -> None:

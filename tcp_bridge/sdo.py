@@ -18,6 +18,7 @@ import logging
 from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
 
 from .errors import DeviceFailure
+from .health import Silence
 
 log = logging.getLogger("tcp_bridge.sdo")
 
@@ -66,6 +67,30 @@ def decode(data: bytes, size: int, signed: bool) -> int:
     return int.from_bytes(bytes(data[:size]), "little", signed=signed)
 
 
+# Exceptions that mean the bus's device itself gave no usable answer (issue 12,
+# tcp_bridge.health): the epos_link client's timeout and link failures, a CAN
+# adapter's errors. An SDO abort, even 0x05040000, is an answer from the link.
+_LINK_FAILURES: Final = frozenset({"EposTimeoutError", "TransportError", "RemoteProtocolError",
+                                   "CanError"})
+
+
+def silence_of(exc: BaseException) -> Optional[Silence]:
+    """Who was silent when a transfer failed with ``exc``: the bus's device, the node, or
+    None (the node answered, with an abort). See :mod:`tcp_bridge.health`."""
+    seen = 0
+    cause: Optional[BaseException] = exc
+    while cause is not None and seen < 8:  # the adapter wraps the client's error (from exc)
+        names = {cls.__name__ for cls in type(cause).__mro__}
+        if names & _LINK_FAILURES or isinstance(cause, OSError):
+            return Silence.LINK
+        seen += 1
+        cause = cause.__cause__ or cause.__context__
+    code = getattr(exc, "code", None)
+    if not isinstance(code, int) or code == SDO_TIMEOUT_ABORT:
+        return Silence.NODE
+    return None
+
+
 def _is_device_error(exc: BaseException) -> bool:
     # canopen.SdoError (aborts, timeouts), python-can errors, OS errors, and
     # whatever an SDO adapter raises for a failed transfer (epos_link errors).
@@ -79,10 +104,13 @@ class SdoPort:
     """Integer reads and writes of one node's objects; failures become DeviceFailure."""
 
     def __init__(self, node: Any, *, name: str = "node",
-                 debug: Callable[[], bool] = lambda: False) -> None:
+                 debug: Callable[[], bool] = lambda: False,
+                 observer: Optional[Callable[[Optional[Silence], str], None]] = None) -> None:
         self.node = node
         self.name = name
         self._debug = debug
+        # Told the outcome of every transfer (tcp_bridge.health: fail-fast buses).
+        self._observer = observer or (lambda silence, why: None)
         self._watchers: Dict[Tuple[int, int], Callable[[int], None]] = {}
 
     def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
@@ -96,6 +124,7 @@ class SdoPort:
         except Exception as exc:
             self._trace("upload", index, subindex, None, exc)
             self._raise_failure("read", index, subindex, exc)
+        self._observer(None, "")
         self._trace("upload", index, subindex, data, None)
         return data
 
@@ -105,6 +134,7 @@ class SdoPort:
         except Exception as exc:
             self._trace("download", index, subindex, data, exc)
             self._raise_failure("write", index, subindex, exc)
+        self._observer(None, "")
         self._trace("download", index, subindex, data, None)
 
     def read(self, index: int, subindex: int = 0, *, size: Optional[int] = None,
@@ -152,6 +182,7 @@ class SdoPort:
             raise exc  # a bug, not a device answer, surfaces as is (still answered NAK)
         code = getattr(exc, "code", None)
         text = f"{self.name}: {what} 0x{index:04X}/{subindex} failed: {exc}"
+        self._observer(silence_of(exc), str(exc))
         if not isinstance(code, int) or code == SDO_TIMEOUT_ABORT:
             raise NodeSilent(text, code if isinstance(code, int) else None) from exc
         raise DeviceFailure(text, code) from exc

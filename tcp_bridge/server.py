@@ -15,10 +15,28 @@ Spec 2.1: the gateway is a TCP server on two ports, 1912 (NICOS / EPICS) and
   transfer, a value that does not fit the reply, a bug), and the connection
   keeps serving.
 
-Limits: a maximum number of simultaneous connections (a connection above it is
-closed at once, unanswered), an optional idle timeout. :meth:`BridgeServer.close`
-stops accepting, lets each request in flight finish and answer, closes the
-connections, then the engine (its bus workers finish their transfers).
+Connection slots cannot be held hostage (issue 12):
+
+* **allow-list**: a client whose address is not in ``options.allow``
+  (:mod:`tcp_bridge.access`; default: loopback) is closed at once, unanswered,
+  and logged with its address, before it counts against any limit;
+* **idle timeout**: a connection is closed when it has sent no *request* for
+  ``idle_timeout`` seconds. Only a complete request that parses resets the
+  clock (so does answering one): bytes trickled without ever completing a
+  request, or lines of junk, do not. The default, 60 s
+  (:data:`DEFAULT_IDLE_TIMEOUT`), is far above the polling period of the
+  clients this gateway serves: EPICS motor drivers and NICOS poll each axis
+  about once a second while it moves and every few seconds at rest, so
+  only a client that has stopped talking is closed, and EPICS (asyn) and
+  NICOS reconnect by themselves if it ever happens;
+* **eviction**: with all ``max_connections`` slots taken, a new client takes
+  the slot of the connection that has been idle longest (waiting for its next
+  request, none in flight); the eviction is logged with both addresses. Only
+  when every connection has a request in flight is the new one refused.
+
+:meth:`BridgeServer.close` stops accepting, lets each request in flight
+finish and answer, closes the connections, then the engine (its bus workers
+finish their transfers).
 """
 from __future__ import annotations
 
@@ -27,6 +45,7 @@ import logging
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Set, Tuple
 
+from .access import LOOPBACK, Network, describe, is_allowed
 from .engine import Engine
 from .errors import BridgeError
 from .protocol import DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item
@@ -35,6 +54,7 @@ log = logging.getLogger(__name__)
 debug_log = logging.getLogger("tcp_bridge.debug")
 
 DEFAULT_PORTS: Tuple[int, int] = (1912, 1913)  # spec 2.1: TCP_PORT_NUM_1 / TCP_PORT_NUM_2
+DEFAULT_IDLE_TIMEOUT = 60.0  # seconds without a request; why 60: see the module docstring
 READ_SIZE = 4096
 
 
@@ -44,15 +64,18 @@ class ServerOptions:
     ports: Sequence[int] = DEFAULT_PORTS
     max_line: int = DEFAULT_MAX_LINE
     max_connections: int = 64
-    idle_timeout: Optional[float] = None  # seconds without a request; None: no limit
+    idle_timeout: Optional[float] = DEFAULT_IDLE_TIMEOUT  # None: never (tests, tools)
     close_grace: float = 10.0  # how long close() waits for requests in flight
+    allow: Sequence[Network] = LOOPBACK  # client networks served (tcp_bridge.access)
 
 
 class _Connection:
-    def __init__(self, task: "asyncio.Task[None]", peer: object) -> None:
+    def __init__(self, task: "asyncio.Task[None]", peer: object, now: float) -> None:
         self.task = task
         self.peer = peer
-        self.busy = False
+        self.busy = False  # a request in flight: never evicted, never idle
+        self.waiting = False  # waiting for bytes between requests: may be evicted
+        self.last_request = now  # loop time of the last complete request (or connect)
 
 
 class BridgeServer:
@@ -85,18 +108,42 @@ class BridgeServer:
     async def wait_closed(self) -> None:
         await self._closed.wait()
 
+    # -- admission ---------------------------------------------------------------------
+
+    def _admit(self, peer: object) -> bool:
+        """Allow-list, then a free slot (evicting the longest idle); False: close unanswered."""
+        if not is_allowed(peer, self.options.allow):
+            log.warning("refused connection from %s: not in the allow-list (%s)", peer,
+                        describe(self.options.allow))
+            return False
+        if self._closing:
+            log.info("refused connection from %s: shutting down", peer)
+            return False
+        if len(self._connections) < self.options.max_connections:
+            return True
+        idle = [c for c in self._connections if c.waiting and not c.busy]
+        if not idle:
+            log.warning("refused connection from %s: all %d connections have a request in "
+                        "flight", peer, self.options.max_connections)
+            return False
+        victim = min(idle, key=lambda c: c.last_request)
+        now = asyncio.get_running_loop().time()
+        log.warning("connection limit (%d) reached: closing %s, idle for %.1f s, to serve %s",
+                    self.options.max_connections, victim.peer, now - victim.last_request, peer)
+        self._connections.discard(victim)  # the slot is free now; the task closes it
+        victim.task.cancel()
+        return True
+
     # -- one connection ------------------------------------------------------------------
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
-        if self._closing or len(self._connections) >= self.options.max_connections:
-            log.warning("refusing connection from %s: %s", peer,
-                        "shutting down" if self._closing else "connection limit reached")
+        if not self._admit(peer):
             writer.close()
             return
         task = asyncio.current_task()
         assert task is not None
-        conn = _Connection(task, peer)
+        conn = _Connection(task, peer, asyncio.get_running_loop().time())
         self._connections.add(conn)
         log.info("client %s connected", peer)
         try:
@@ -104,7 +151,7 @@ class BridgeServer:
         except (ConnectionError, OSError) as exc:
             log.info("client %s: %s", peer, exc)
         except asyncio.CancelledError:
-            pass  # shutdown of an idle connection
+            pass  # shutdown or eviction of an idle connection
         finally:
             self._connections.discard(conn)  # the slot is free before the close handshake
             writer.close()
@@ -114,16 +161,31 @@ class BridgeServer:
                 pass
             log.info("client %s disconnected", peer)
 
+    def _time_left(self, conn: _Connection) -> Optional[float]:
+        """Seconds until ``conn`` is idle too long (None: no limit)."""
+        limit = self.options.idle_timeout
+        if limit is None:
+            return None
+        return conn.last_request + limit - asyncio.get_running_loop().time()
+
     async def _converse(self, conn: _Connection, reader: asyncio.StreamReader,
                         writer: asyncio.StreamWriter) -> None:
         """Read requests and answer them in order until EOF, idle timeout, or shutdown."""
+        loop = asyncio.get_running_loop()
         splitter = LineSplitter(self.options.max_line)
         while not self._closing:
+            left = self._time_left(conn)
+            conn.waiting = True
             try:
-                data = await asyncio.wait_for(reader.read(READ_SIZE), self.options.idle_timeout)
+                if left is not None and left <= 0:
+                    raise asyncio.TimeoutError
+                data = await asyncio.wait_for(reader.read(READ_SIZE), left)
             except asyncio.TimeoutError:
-                log.info("client %s idle for %g s; closing", conn.peer, self.options.idle_timeout)
+                log.info("client %s sent no request for %g s; closing", conn.peer,
+                         self.options.idle_timeout)
                 return
+            finally:
+                conn.waiting = False
             if not data:
                 return  # EOF; a half-received request is dropped unanswered
             items = splitter.feed(data)
@@ -141,17 +203,24 @@ class BridgeServer:
                     return
                 conn.busy = True
                 try:
-                    reply = await self._answer(item)
+                    reply, valid = await self._answer(item)
                 finally:
                     conn.busy = False
+                if valid:
+                    # Only a request resets the idle clock (issue 12): bytes or
+                    # junk lines trickled to hold the slot do not.
+                    conn.last_request = loop.time()
                 if not writer.is_closing():
                     writer.write(reply)
                 if self._closing:
                     break
             await writer.drain()
 
-    async def _answer(self, item: Line) -> bytes:
-        """The one place where an exception becomes a reply (CAN or NAK)."""
+    async def _answer(self, item: Line) -> Tuple[bytes, bool]:
+        """The one place where an exception becomes a reply (CAN or NAK).
+
+        Returns the reply and whether ``item`` was a request that parsed.
+        """
         request: Optional[Request] = None
         try:
             request = parse_item(item)
@@ -166,7 +235,7 @@ class BridgeServer:
             reply = format_error_reply(exc, request)
         if self.engine.debug:
             debug_log.info("request %r -> reply %r", item, reply.rstrip(b"\0"))
-        return reply
+        return reply, request is not None
 
     # -- shutdown ----------------------------------------------------------------------------
 

@@ -16,6 +16,13 @@ future directly measured 10-25% more commands/s for one client in
 executor's: a job whose future was cancelled before it started never runs;
 :meth:`BusWorker.close` lets the job in flight finish and cancels the queued
 ones.
+
+Maintenance: a worker may be given ``maintenance``, a callable run on the
+worker thread before each job and whenever the queue has been empty for as
+long as it asked (it returns the seconds until it wants to run again, or None
+for "nothing to do"; it runs at least every second anyway). The fail-fast probes of a silent bus
+run there (:mod:`tcp_bridge.failfast`): on the one thread that talks to the
+bus, between jobs, never concurrently with one.
 """
 from __future__ import annotations
 
@@ -26,6 +33,9 @@ import threading
 from typing import Any, Callable, Optional, Tuple
 
 log = logging.getLogger(__name__)
+
+MAINTENANCE_RETRY = 1.0  # seconds: after a maintenance call that raised, run it again this late
+MAX_IDLE_WAIT = 1.0  # seconds: maintenance runs at least this often
 
 _Item = Optional[Tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[[], Any]]]
 
@@ -49,8 +59,10 @@ def _cancel(loop: asyncio.AbstractEventLoop, future: "asyncio.Future[Any]") -> N
 class BusWorker:
     """A daemon thread that runs submitted jobs in order; see the module docstring."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str,
+                 maintenance: Optional[Callable[[], Optional[float]]] = None) -> None:
         self.name = name
+        self._maintenance = maintenance
         self._queue: "queue.SimpleQueue[_Item]" = queue.SimpleQueue()
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
@@ -81,9 +93,26 @@ class BusWorker:
         if wait:
             self._thread.join()
 
+    def _maintain(self) -> Optional[float]:
+        if self._maintenance is None:
+            return None
+        try:
+            return self._maintenance()
+        except Exception:  # a bug: never kill the bus thread
+            log.exception("bus %s: maintenance failed", self.name)
+            return MAINTENANCE_RETRY
+
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
+            wait = self._maintain()
+            if self._maintenance is not None:
+                # Bounded even with nothing to do: a job run outside this thread
+                # (Engine.execute_sync) may have declared a link silent meanwhile.
+                wait = MAX_IDLE_WAIT if wait is None else min(wait, MAX_IDLE_WAIT)
+            try:
+                item = self._queue.get(timeout=wait)
+            except queue.Empty:
+                continue  # time for maintenance
             if item is None:
                 return
             loop, future, job = item

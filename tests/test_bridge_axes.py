@@ -213,7 +213,8 @@ def test_failed_state_file_write_keeps_the_value_and_logs(tmp_path: Path,
                                                           caplog: pytest.LogCaptureFixture) -> None:
     blocker = tmp_path / "gone"
     store = ParameterStore(AxisTable.from_mapping(table()), blocker / "s.json")
-    blocker.write_text("x")  # after start: the state file's directory cannot be created
+    blocker.rmdir()  # made by the start-up check (issue 12) ...
+    blocker.write_text("x")  # ... replaced after start: the directory cannot be created
     with caplog.at_level("ERROR", logger="tcp_bridge.parameters"):
         store.set_user(1, 22, -1)  # does not raise: the change took effect
         assert store.flush(5)

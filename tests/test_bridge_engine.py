@@ -60,6 +60,14 @@ def ok(engine: Engine, line: str) -> Optional[str]:
     return reply.value
 
 
+def wait_answering(engine: Engine, timeout: float = 10.0) -> None:
+    """Until no link of any bus is declared silent (the probes run every 0.25 s)."""
+    deadline = time.monotonic() + timeout
+    while any(g.health.refusal(n) for g in engine.guards.values() for n in g.nodes):
+        assert time.monotonic() < deadline, "a silent link was never reopened by its probe"
+        time.sleep(0.01)
+
+
 def downloads(node: FakeNode, index: Optional[int] = None) -> List[Tuple[int, int, int]]:
     """(index, subindex, value) of every download, optionally of one object."""
     out = []
@@ -505,6 +513,7 @@ def test_a_node_that_was_silent_once_is_not_reset_by_the_next_enable() -> None:
     node.absent = True
     assert ask(engine, "1R10").status is Status.NAK
     node.absent = False
+    wait_answering(engine)  # fail-fast (issue 12): the node's probe reopens it
     ok(engine, "1S04=0")
     ok(engine, "1S04=1")
     assert node.resets == 0
@@ -704,7 +713,8 @@ def test_failed_state_file_write_is_still_ack(tmp_path: Any) -> None:
                                 "bus": {"can1": {"backend": "instant"}},
                                 "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
     engine = build_engine(t)
-    blocker.write_text("x")  # after start: the directory cannot be created
+    blocker.rmdir()  # made by the start-up check (issue 12) ...
+    blocker.write_text("x")  # ... replaced after start: the directory cannot be created
     assert run_async(engine, "1S05=3").status is Status.ACK  # drive parameter (6081h)
     assert engine.backends[0].nodes[1].values[(0x6081, 0)] == 3000
     assert run_async(engine, "1S22=-1").status is Status.ACK  # internal parameter

@@ -292,21 +292,59 @@ def test_many_clients_each_get_their_own_replies_in_order(running: Running) -> N
     assert errors == []
 
 
-def test_connection_limit() -> None:
-    r = Running(make_engine(), max_connections=2)
+def test_connection_limit_all_busy_refuses_the_new_client() -> None:
+    table = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant"}},
+                                    "axis": [{"node_id": 1}]})
+    gate = threading.Event()
+
+    class HeldNode(FakeNode):
+        def upload(self, index: int, subindex: int) -> bytes:
+            gate.wait(30)  # a transfer in flight until the test lets it go
+            return super().upload(index, subindex)
+
+    r = Running(Engine(table, {1: HeldNode(1)}), max_connections=2)
     try:
         a, b = r.connect(), r.connect()
-        assert exchange(a, b"1R86") and exchange(b, b"1R86")
+        a.sendall(b"1R10\r")
+        b.sendall(b"1R10\r")  # queued behind a's on the bus: both busy
+        wait_until(lambda: all(c.busy for c in r.server._connections)
+                   and len(r.server._connections) == 2)
         with r.connect() as c:
-            c.settimeout(2)
+            c.settimeout(10)
             assert c.recv(100) == b""  # refused: closed at once, unanswered
+        gate.set()
+        assert recv_replies(a, 1) == recv_replies(b, 1) == [named("1 R 10=1600", Status.ACK)]
         a.close()
-        time.sleep(0.1)
-        with r.connect() as d:
-            assert exchange(d, b"1R86") == [named("1 R 86=0", Status.ACK)]
         b.close()
     finally:
+        gate.set()
         r.stop()
+
+
+def test_connection_limit_evicts_the_longest_idle(caplog: pytest.LogCaptureFixture) -> None:
+    r = Running(make_engine(), max_connections=2)
+    try:
+        with caplog.at_level(logging.WARNING, logger="tcp_bridge.server"):
+            old, recent = r.connect(), r.connect()
+            assert exchange(old, b"1R86") and exchange(recent, b"1R86")
+            assert exchange(recent, b"1R86")  # old is now the one idle longest
+            with r.connect() as new:
+                assert exchange(new, b"1R86") == [named("1 R 86=0", Status.ACK)]
+                old.settimeout(10)
+                assert old.recv(100) == b""  # evicted
+                assert exchange(recent, b"1R86") == [named("1 R 86=0", Status.ACK)]
+        assert "closing ('127.0.0.1', %d)" % old.getsockname()[1] in caplog.text
+        old.close()
+        recent.close()
+    finally:
+        r.stop()
+
+
+def wait_until(what: Any, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not what():
+        assert time.monotonic() < deadline, "condition never became true"
+        time.sleep(0.01)
 
 
 def test_idle_timeout() -> None:
@@ -489,7 +527,7 @@ def test_cli_serve_bad_arguments_are_one_clear_line(tmp_path: Path, args: List[s
 
 def test_cli_serve_unresolvable_bind_address(tmp_path: Path) -> None:
     proc = serve(["--config", str(write_config(tmp_path)), "--bind", "no-such-host.invalid",
-                  "--port", "0", "--maintenance-port", "-1"])
+                  "--allow", "0.0.0.0/0", "--port", "0", "--maintenance-port", "-1"])
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 2
     line = err.strip()

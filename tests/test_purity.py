@@ -10,6 +10,7 @@ PURE = [
     "epos_link.errors", "epos_link.codes", "epos_link.crc", "epos_link.framing",
     "epos_link.messages", "epos_link.capture", "epos_link.segmented", "epos_link.cia402",
     "epos_link.simulator.device", "tcp_bridge.protocol", "tcp_bridge.commands", "tcp_bridge.units",
+    "tcp_bridge.access", "tcp_bridge.health",
 ]
 FORBIDDEN = ["serial", "usb", "socket", "asyncio", "threading", "time", "select", "can", "canopen"]
 

@@ -21,6 +21,12 @@ from ..axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import object_dictionary
 
 
+# An EPOS4 answers a ReadObject within milliseconds (USB, or RS232 at 115200 Bd:
+# ~2 ms of wire time); 0.2 s leaves room for a loaded host and still lets a
+# probe every 0.25 s notice a device that came back within about a second.
+PROBE_TIMEOUT = 0.2
+
+
 class EposBackend:
     def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = (), *,
                  client: Optional[Any] = None) -> None:
@@ -48,6 +54,19 @@ class EposBackend:
             node = connect_node(self.client, node_id, object_dictionary(self.eds, node_id))
             self.nodes[node_id] = node
         return node
+
+    def probe(self) -> None:
+        """Does the EPOS4 itself answer? (Fail-fast buses, :mod:`tcp_bridge.failfast`.)
+
+        Reads its device type, 1000h/00h, as node 0: the device on the link
+        itself (Communication Guide, chapter 5 gateway addressing), so an absent
+        node behind it cannot make the link look silent. One attempt with a
+        short timeout: a failed probe is simply tried again later. After a
+        transport failure the client reopens the link first, so this is also
+        what reopens a USB/serial port that came back.
+        """
+        self.client.read_object(0, 0x1000, 0, timeout=min(self.client.timeout, PROBE_TIMEOUT),
+                                retries=0)
 
     def close(self) -> None:
         self.client.close()

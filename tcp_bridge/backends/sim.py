@@ -61,6 +61,10 @@ class SimBackend:
     def node(self, node_id: int) -> Any:
         return self.epos.node(node_id)
 
+    def probe(self) -> None:
+        """The simulated EPOS4 itself answers (see :meth:`EposBackend.probe`)."""
+        self.epos.probe()
+
     def drive(self, node_id: int) -> Any:
         """The simulated drive model of ``node_id`` (fault injection in tests)."""
         return self.simulator.drive(node_id)
