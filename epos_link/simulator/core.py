@@ -9,6 +9,20 @@ bus with ``canopen.Network().connect(interface="virtual", channel=sim.channel)``
 
 Time: by default the drives run in real time (``time.monotonic``); pass a
 :class:`~epos_link.simulator.drive.VirtualClock` to step time in tests.
+
+NMT (guide 3.3.3, Table 3-13), per simulated drive:
+
+* after boot-up (power-up, :meth:`Epos4Simulator.power_cycle`, NMT reset node
+  or reset communication) a drive is Pre-Operational and sends its boot-up
+  message, COB-ID 0x700 + node id with one data byte 0x00, on the CAN bus;
+* statusword bit 9 (remote) is 1 exactly while the drive is Operational
+  (Table 3-13, footnote 3);
+* in Stopped a drive's CAN SDO server does not answer (Table 3-13: only NMT,
+  LSS and heartbeat), so the gateway reports 0x05040000 after its timeout;
+* **chosen**: the serial link (node 0 or the device's own id) keeps working
+  in every NMT state. Table 3-13 describes the CAN interface; USB/RS232 is a
+  separate channel (the guide's "Wrong NMT state error" 0x0F00FFC0 is not
+  tied to it anywhere), and a host must be able to start a stopped node.
 """
 from __future__ import annotations
 
@@ -23,6 +37,7 @@ from canopen.sdo import SdoAbortedError
 from ..codes import ErrorCode, NmtCommand
 from .device import Abort, DeviceProtocol
 from .drive import Drive
+from .nmt import NmtState, next_state
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
 
@@ -40,27 +55,61 @@ def _locked(lock: threading.RLock, fn: Callable[..., Any]) -> Callable[..., Any]
 
 
 class SimulatedDrive:
-    """One drive: object store, CiA 402 model and (behind the gateway) its LocalNode."""
+    """One drive: object store, CiA 402 model, NMT state and (behind the gateway) its LocalNode."""
 
     def __init__(self, node_id: int, clock: Callable[[], float]) -> None:
         self.node_id = node_id
         self.store = ObjectStore(load_object_dictionary(node_id))
         self.store.set(NODE_ID_OBJECT, 0, node_id)
         self.drive = Drive(self.store, clock=clock)
+        self.drive.on_power_up = self._booted
+        self.nmt_state = NmtState.PRE_OPERATIONAL
         self.local_node: Optional[canopen.LocalNode] = None
+        self.network: Optional[canopen.Network] = None  # where boot-up messages go
         # The serial thread and the CAN notifier thread both reach this store.
         self.lock = threading.RLock()
         for name in ("read", "write"):
             setattr(self.store, name, _locked(self.lock, getattr(self.store, name)))
 
+    def attach(self, node: canopen.LocalNode, network: canopen.Network) -> None:
+        """Serve CAN SDO through ``node`` on ``network``, silent while NMT Stopped."""
+        serve = node.sdo.on_request
+
+        def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
+            if self.nmt_state is not NmtState.STOPPED:  # Table 3-13: no SDO in Stopped
+                serve(can_id, data, timestamp)
+
+        # An instance attribute, set before add_node subscribes it to the bus.
+        node.sdo.on_request = on_request  # type: ignore[method-assign]
+        self.local_node = node
+        self.network = network
+        network.add_node(node)
+
     def nmt(self, command: int) -> None:
         with self.lock:
-            self._nmt(command)
+            if command == NmtCommand.RESET_NODE:
+                self.drive.reset_node(self.drive.clock() if self.drive.clock else None)
+                return  # _booted() did the rest
+            if command == NmtCommand.RESET_COMMUNICATION:
+                self._booted("reset communication")
+                return
+            self._set_state(next_state(self.nmt_state, command))
 
-    def _nmt(self, command: int) -> None:
-        if command == NmtCommand.RESET_NODE:
+    def power_cycle(self) -> None:
+        """The supply is switched off and on: saved parameters, counter 0, boot-up."""
+        with self.lock:
             self.drive.power_cycle(self.drive.clock() if self.drive.clock else None)
-            self.store.set(NODE_ID_OBJECT, 0, self.node_id)
+
+    def _booted(self, cause: str) -> None:
+        self.store.set(NODE_ID_OBJECT, 0, self.node_id)
+        self._set_state(NmtState.PRE_OPERATIONAL)
+        if self.network is not None:
+            # CiA 301 7.2.8.3.2.1: boot-up = COB-ID 0x700 + node id, one byte 0x00.
+            self.network.send_message(0x700 + self.node_id, b"\x00")
+
+    def _set_state(self, state: NmtState) -> None:
+        self.nmt_state = state
+        self.drive.remote = state is NmtState.OPERATIONAL  # statusword bit 9
 
 
 class Epos4Simulator:
@@ -88,8 +137,9 @@ class Epos4Simulator:
         for nid in remote:
             self.drives[nid] = SimulatedDrive(nid, self.clock)
         for nid, sim in self.drives.items():
-            sim.local_node = make_local_node(sim.store, nid)
-            self._drive_net.add_node(sim.local_node)
+            sim.attach(make_local_node(sim.store, nid), self._drive_net)
+        for nid in self.drives:  # powered up: each drive says so (CiA 301 boot-up)
+            self._drive_net.send_message(0x700 + nid, b"\x00")
         self._drive_net.subscribe(0, self._on_nmt)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
@@ -160,6 +210,19 @@ class Epos4Simulator:
 
     def drive(self, node_id: int) -> Drive:
         return self.drives[node_id].drive
+
+    def power_cycle(self, node_id: int) -> None:
+        """Fault injection: switch drive ``node_id`` off and on (see :meth:`SimulatedDrive.power_cycle`)."""
+        self.drives[node_id].power_cycle()
+
+    def nmt_state(self, node_id: int) -> NmtState:
+        return self.drives[node_id].nmt_state
+
+    def increments_per_revolution(self, node_id: int) -> int:
+        """Main sensor increments per motor revolution of drive ``node_id`` (3000h:05)."""
+        sim = self.drives[node_id]
+        with sim.lock:
+            return sim.drive.increments_per_revolution
 
     def close(self) -> None:
         if self.gateway is not None:

@@ -4,6 +4,14 @@ The device logic is pure (:mod:`.device`); this module adds what a real link
 has: timing (a baud rate, the device's frame timeout of guide 2.2.7) and
 faults (dropped, corrupted or delayed reply bytes, silence, disconnects).
 One host at a time, like the real device.
+
+Pacing (``--baud``): a UART sends one byte every 10 bit times (8N1, guide
+2.2.6). A request is answered once its own bytes would have arrived, and each
+answer byte is written when its stop bit would have left the wire: byte ``i``
+of an answer at ``start + (i + 1) * 10 / baud``, on an absolute schedule, so
+a late wake-up is caught up (every byte already due goes out at once) and the
+answer never takes longer than the wire needs plus one wake-up. The clock
+and the sleep are injectable for tests.
 """
 from __future__ import annotations
 
@@ -85,9 +93,13 @@ class LinkServer:
     """Runs the request/answer loop over one byte stream (fd or socket)."""
 
     def __init__(self, device: Device, options: Optional[LinkOptions] = None,
-                 trace: Optional[CaptureWriter] = None) -> None:
+                 trace: Optional[CaptureWriter] = None, *,
+                 clock: Callable[[], float] = time.perf_counter,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
         self.device = device
         self.options = options or LinkOptions()
+        self._clock = clock
+        self._sleep = sleep
         self.faults = FaultInjector(self.options)
         self.replies = 0
         # Records the link as the host sees it: TX host to device, RX as sent (faults included).
@@ -109,21 +121,26 @@ class LinkServer:
     def _send(self, write: Callable[[bytes], None], reply: bytes) -> None:
         opts = self.options
         if opts.delay:
-            time.sleep(opts.delay)
+            self._sleep(opts.delay)
         reply = self.faults.apply(reply)
         self._record("RX", reply)
-        if opts.baud:
-            # Pace the bytes like a UART would, in small bursts.
-            per_byte = BITS_PER_BYTE / opts.baud
-            start = time.perf_counter()
-            for i in range(0, len(reply), 16):
-                write(reply[i:i + 16])
-                due = start + (i + 16) * per_byte
-                pause = due - time.perf_counter()
-                if pause > 0:
-                    time.sleep(pause)
-        elif reply:
+        if not reply:
+            return
+        if not opts.baud:
             write(reply)
+            return
+        per_byte = BITS_PER_BYTE / opts.baud
+        start = self._clock()
+        sent = 0
+        while sent < len(reply):
+            wait = start + (sent + 1) * per_byte - self._clock()
+            if wait > 0:
+                self._sleep(wait)
+            # Every byte whose stop bit is past by now: one, or more after a late wake-up.
+            done = int((self._clock() - start) / per_byte)
+            upto = min(len(reply), max(sent + 1, done))
+            write(reply[sent:upto])
+            sent = upto
 
     def serve_stream(self, read: Callable[[float], Optional[bytes]],
                      write: Callable[[bytes], None]) -> None:
@@ -143,7 +160,7 @@ class LinkServer:
                 continue
             if opts.baud:
                 # The request itself took wire time to arrive.
-                time.sleep(len(data) * BITS_PER_BYTE / opts.baud)
+                self._sleep(len(data) * BITS_PER_BYTE / opts.baud)
             last_rx = now
             self._record("TX", data)
             for reply in self.device.receive(data):
