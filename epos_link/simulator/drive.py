@@ -214,6 +214,15 @@ class Drive:
         return _wrap_i32(self._physical() + self._offset)
 
     @property
+    def axis_position(self) -> float:
+        """Where the axis physically is, in increments from where it was at the first power-up.
+
+        Unlike 6064h it is not moved by homing or power cycles: tests use it
+        to see whether the axis really moved.
+        """
+        return self._physical()
+
+    @property
     def velocity(self) -> int:
         """606Ch, in the unit of 60A9h (rpm by default)."""
         return int(math.floor(self.units.velocity_from_inc_s(self.velocity_increments) + 0.5))
