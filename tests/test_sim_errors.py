@@ -121,13 +121,16 @@ def test_limit_switch_sets_input_and_bit_11() -> None:
 
 def test_error_history_newest_first_and_bounded() -> None:
     d = Drive(ObjectStore(OD))
-    kinds = ["limit_negative", "sto", "following_error", "software_limit", "limit_positive", "sto", "sto"]
+    codes = {"limit_negative": 0x8A80, "limit_positive": 0x8A81, "software_limit": 0x8A82,
+             "sto": 0x8A88, "following_error": 0x8611}
+    kinds = ["limit_negative", "sto", "following_error", "software_limit", "limit_positive",
+             "sto", "limit_negative", "software_limit", "following_error", "sto"]
     for kind in kinds:
         d.inject_fault(kind)
         d.write_controlword(FAULT_RESET)
         d.write_controlword(0)
-    assert read(d, 0x1003, 0) == HISTORY_DEPTH == 5
-    assert [read(d, 0x1003, s) for s in range(1, 6)] == [0x8A88, 0x8A88, 0x8A81, 0x8A82, 0x8611]
+    assert read(d, 0x1003, 0) == HISTORY_DEPTH == 8  # as the EDS declares: subs 1..8
+    assert [read(d, 0x1003, s) for s in range(1, 9)] == [codes[k] for k in reversed(kinds)][:8]
 
 
 def test_error_history_clear_with_zero_only() -> None:

@@ -12,9 +12,12 @@ Time: by default the drives run in real time (``time.monotonic``); pass a
 
 NMT (guide 3.3.3, Table 3-13), per simulated drive:
 
-* after boot-up (power-up, :meth:`Epos4Simulator.power_cycle`, NMT reset node
-  or reset communication) a drive is Pre-Operational and sends its boot-up
-  message, COB-ID 0x700 + node id with one data byte 0x00, on the CAN bus;
+* after a reset (power-up, :meth:`Epos4Simulator.power_cycle`, NMT reset node
+  or reset communication) a drive is initialising: "while initialization is
+  active, no communication is supported" (guide 3.3.3.5, Table 3-13), so its
+  CAN SDO server is silent for ``boot_time`` real seconds (default 0); "upon
+  completion" it sends its boot-up message, COB-ID 0x700 + node id with one
+  data byte 0x00, and is Pre-Operational;
 * statusword bit 9 (remote) is 1 exactly while the drive is Operational
   (Table 3-13, footnote 3);
 * in Stopped a drive's CAN SDO server does not answer (Table 3-13: only NMT,
@@ -31,6 +34,7 @@ import threading
 import time
 from typing import Any, Callable, Iterable, Optional
 
+import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
@@ -62,8 +66,11 @@ class SimulatedDrive:
         self.store = ObjectStore(load_object_dictionary(node_id))
         self.store.set(NODE_ID_OBJECT, 0, node_id)
         self.drive = Drive(self.store, clock=clock)
-        self.drive.on_power_up = self._booted
+        self.drive.on_power_up = self._reset_done
         self.nmt_state = NmtState.PRE_OPERATIONAL
+        # How a reset ends: Epos4Simulator sets it (boot_time); default at once.
+        self.boot: Callable[["SimulatedDrive"], None] = SimulatedDrive.booted
+        self.boot_timer: Optional[threading.Timer] = None
         self.local_node: Optional[canopen.LocalNode] = None
         self.network: Optional[canopen.Network] = None  # where boot-up messages go
         # The serial thread and the CAN notifier thread both reach this store.
@@ -76,7 +83,8 @@ class SimulatedDrive:
         serve = node.sdo.on_request
 
         def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
-            if self.nmt_state is not NmtState.STOPPED:  # Table 3-13: no SDO in Stopped
+            # Table 3-13: no SDO in Stopped, no communication while initialising.
+            if self.nmt_state not in (NmtState.STOPPED, NmtState.INITIALISING):
                 serve(can_id, data, timestamp)
 
         # An instance attribute, set before add_node subscribes it to the bus.
@@ -89,23 +97,36 @@ class SimulatedDrive:
         with self.lock:
             if command == NmtCommand.RESET_NODE:
                 self.drive.reset_node(self.drive.clock() if self.drive.clock else None)
-                return  # _booted() did the rest
+                return  # _reset_done() goes on
             if command == NmtCommand.RESET_COMMUNICATION:
-                self._booted("reset communication")
+                self._reset_done("reset communication")
                 return
-            self._set_state(next_state(self.nmt_state, command))
+            if self.nmt_state is not NmtState.INITIALISING:
+                self._set_state(next_state(self.nmt_state, command))
 
     def power_cycle(self) -> None:
         """The supply is switched off and on: saved parameters, counter 0, boot-up."""
         with self.lock:
             self.drive.power_cycle(self.drive.clock() if self.drive.clock else None)
 
-    def _booted(self, cause: str) -> None:
+    def _reset_done(self, cause: str) -> None:
         self.store.set(NODE_ID_OBJECT, 0, self.node_id)
-        self._set_state(NmtState.PRE_OPERATIONAL)
-        if self.network is not None:
-            # CiA 301 7.2.8.3.2.1: boot-up = COB-ID 0x700 + node id, one byte 0x00.
-            self.network.send_message(0x700 + self.node_id, b"\x00")
+        self._set_state(NmtState.INITIALISING)
+        self.boot(self)
+
+    def booted(self) -> None:
+        """Initialisation complete: boot-up message, then Pre-Operational."""
+        with self.lock:
+            if self.nmt_state is not NmtState.INITIALISING:
+                return
+            self._set_state(NmtState.PRE_OPERATIONAL)
+            network = self.network
+        if network is not None:
+            try:
+                # CiA 301 7.2.8.3.2.1: boot-up = COB-ID 0x700 + node id, one byte 0x00.
+                network.send_message(0x700 + self.node_id, b"\x00")
+            except can.CanError:  # the simulator was closed meanwhile: nobody to tell
+                pass
 
     def _set_state(self, state: NmtState) -> None:
         self.nmt_state = state
@@ -118,10 +139,14 @@ class Epos4Simulator:
     def __init__(self, node_id: int = 1, drives: Iterable[int] = (), *,
                  clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
                  gateway_timeout: float = 0.3, segment_size: int = 255,
-                 initiate_carries_data: bool = True) -> None:
+                 initiate_carries_data: bool = True, boot_time: float = 0.0) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
+        if not boot_time >= 0:
+            raise ValueError("boot time must be 0 or more seconds")
         self.node_id = node_id
+        self.boot_time = boot_time
+        self._boot_lock = threading.Lock()  # boot timers against close()
         self.clock = clock or time.monotonic
         self._lock = threading.Lock()
         self.own = SimulatedDrive(node_id, self.clock)
@@ -137,6 +162,7 @@ class Epos4Simulator:
         for nid in remote:
             self.drives[nid] = SimulatedDrive(nid, self.clock)
         for nid, sim in self.drives.items():
+            sim.boot = self._boot
             sim.attach(make_local_node(sim.store, nid), self._drive_net)
         for nid in self.drives:  # powered up: each drive says so (CiA 301 boot-up)
             self._drive_net.send_message(0x700 + nid, b"\x00")
@@ -206,6 +232,32 @@ class Epos4Simulator:
             if target in (0, nid):
                 sim.nmt(command)
 
+    def _boot(self, sim: SimulatedDrive) -> None:
+        """After a reset: silent for ``boot_time``, then the boot-up message.
+
+        Lock order: a drive's lock may be held when this runs; ``_boot_lock``
+        is never held while a drive's lock is taken.
+        """
+        with self._boot_lock:
+            if sim.boot_timer is not None:
+                sim.boot_timer.cancel()  # one pending boot per drive: the last reset counts
+                sim.boot_timer = None
+            at_once = self.boot_time <= 0 or self._drive_net is None
+            if not at_once:
+                timer = threading.Timer(self.boot_time, lambda: self._booted(sim, timer))
+                timer.daemon = True
+                sim.boot_timer = timer
+                timer.start()
+        if at_once:
+            sim.booted()
+
+    def _booted(self, sim: SimulatedDrive, timer: threading.Timer) -> None:
+        with self._boot_lock:
+            if sim.boot_timer is not timer:  # cancelled, or replaced by a later reset
+                return
+            sim.boot_timer = None
+        sim.booted()
+
     # -- conveniences ----------------------------------------------------------------------
 
     def drive(self, node_id: int) -> Drive:
@@ -225,13 +277,21 @@ class Epos4Simulator:
             return sim.drive.increments_per_revolution
 
     def close(self) -> None:
+        with self._boot_lock:
+            for sim in self.drives.values():
+                if sim.boot_timer is not None:
+                    sim.boot_timer.cancel()
+                    sim.boot_timer = None
         if self.gateway is not None:
             self.gateway.close()
             self.gateway.network.disconnect()
             self.gateway = None
-        if self._drive_net is not None:
-            self._drive_net.disconnect()
-            self._drive_net = None
+        with self._boot_lock:
+            net, self._drive_net = self._drive_net, None
+            for sim in self.drives.values():
+                sim.network = None
+        if net is not None:
+            net.disconnect()
 
     def __enter__(self) -> "Epos4Simulator":
         return self

@@ -17,7 +17,7 @@ limit switch, bit 2 home switch (CiA 402-2 60FDh).
 1003h "Pre-defined error field" (CiA 301 7.5.2.4): sub 0 is the number of
 errors; writing 0 clears the history, any other value is refused with
 0x06090030. Subs 1..:data:`HISTORY_DEPTH` hold the newest error first
-(error code in the low 16 bits). The depth is **chosen** (5).
+(error code in the low 16 bits). The depth (8) is **chosen**, as the EDS declares it.
 
 Simulator conveniences, decided here once: an injected fault is one-shot
 (a fault reset always succeeds and clears 603Fh, 1001h and the 60FDh bits the
@@ -38,7 +38,7 @@ __all__ = [
     "SIMULATOR_COMMANDS", "clear_history", "push_history",
 ]
 
-HISTORY_DEPTH = 5
+HISTORY_DEPTH = 8
 ERROR_HISTORY = 0x1003
 
 

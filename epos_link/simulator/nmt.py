@@ -13,8 +13,9 @@ __all__ = ["NmtState", "next_state"]
 
 
 class NmtState(Enum):
-    """The states of Table 3-13 after initialisation, with CiA 301's heartbeat values."""
+    """The states of Table 3-13, with CiA 301's heartbeat values."""
 
+    INITIALISING = 0x00  # after a reset, until the boot-up message
     PRE_OPERATIONAL = 0x7F
     OPERATIONAL = 0x05
     STOPPED = 0x04
