@@ -132,6 +132,19 @@ def test_commands_during_the_disable_ramp() -> None:
     assert d.state is State.SWITCH_ON_DISABLED and list(d.unsafe_stops) == []
 
 
+def test_a_fault_during_the_disable_ramp_ends_it_for_good() -> None:
+    d = moving_pv()
+    d.write_controlword(SWITCH_ON)  # ramp pending
+    d.inject_fault("following_error")
+    d.advance(1.0)
+    d.write_controlword(0x80)  # fault reset
+    d.write_controlword(SHUTDOWN)
+    d.write_controlword(ENABLE)
+    write(d, 0x60FF, 100)
+    d.advance(1.0)
+    assert d.state is State.OPERATION_ENABLED and d.velocity == 100  # no stale transition 5
+
+
 @pytest.mark.parametrize(("option", "stop_time"), [(1, 0.1), (2, 0.02)])
 def test_halt_option_code(option: int, stop_time: float) -> None:
     d = moving_pv()

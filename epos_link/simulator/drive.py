@@ -382,6 +382,7 @@ class Drive(Kinematics):
         was_powered, v = self._powered(), self.velocity_increments
         self.history.append((self._now, number, state))
         self._state = state
+        self._pending = None  # any transition ends a 605Bh/605Ch ramp (or is its end)
         if number in (5, 8, 9, 11, 12):
             self._interrupt()  # leaving operation: the move and homing are dropped
         if number == 15:
