@@ -345,8 +345,13 @@ class AxisOps:
             if not -(1 << (bits - 1)) <= value < (1 << bits):
                 raise InvalidCommand(f"{value} does not fit {selector.length} bytes", cmd=81)
             raw = int(value) & ((1 << bits) - 1)
-            return lambda: port.write(selector.index, selector.subindex, raw,
-                                      size=selector.length, signed=False)
+
+            def write_raw() -> None:
+                port.write(selector.index, selector.subindex, raw, size=selector.length,
+                           signed=False)
+                if selector.index == VELOCITY_UNIT.index:  # read the new unit when next needed
+                    self.velocity_exponent, self.unit_error = None, None
+            return write_raw
         obj = spec.obj
         if spec.kind is not CommandKind.SDO or obj is None:
             raise AssertionError(f"no write for command {n}")
