@@ -29,6 +29,8 @@ from epos_link.cia402 import (
     state_from_statusword,
 )
 from epos_link.simulator.drive import FAULTS, Drive, Mode, VirtualClock
+from epos_link.simulator.homing import VirtualSwitches
+from epos_link.simulator.safety import EventKind
 from epos_link.simulator.motion import Kind, plan_position, plan_stop, plan_velocity
 from epos_link.simulator.od import ObjectStore, load_object_dictionary
 
@@ -749,7 +751,11 @@ actions = st.one_of(
     st.tuples(st.just("target"), st.integers(-(1 << 31), (1 << 31) - 1)),
     st.tuples(st.just("velocity"), st.integers(-60000, 60000)),
     st.tuples(st.just("option"), st.integers(-1, 9)),
+    st.tuples(st.just("shutdown_option"), st.integers(-1, 2)),
+    st.tuples(st.just("disable_option"), st.integers(-1, 2)),
+    st.tuples(st.just("method"), st.sampled_from([-4, -1, 1, 2, 7, 17, 18, 23, 33, 34, 35, 37, 3])),
     st.tuples(st.just("fault"), st.sampled_from(sorted(FAULTS))),
+    st.tuples(st.just("reset"), st.sampled_from(["power_cycle", "reset_node"])),
 )
 
 
@@ -757,12 +763,16 @@ actions = st.one_of(
 @given(st.lists(actions, max_size=40))
 def test_any_sequence_keeps_a_valid_state(steps: list[tuple[str, object]]) -> None:
     d = make()
-    index = {"mode": 0x6060, "target": 0x607A, "velocity": 0x60FF, "option": 0x605A}
+    d.switches = VirtualSwitches(-300.0, 300.0, 50.0, -400.0, 400.0)  # reachable in 2 s steps
+    index = {"mode": 0x6060, "target": 0x607A, "velocity": 0x60FF, "option": 0x605A,
+             "shutdown_option": 0x605B, "disable_option": 0x605C, "method": 0x6098}
     for kind, value in steps:
         try:
             if kind == "fault":
                 assert isinstance(value, str)
                 d.inject_fault(value)
+            elif kind == "reset":
+                getattr(d, str(value))()
             elif kind == "dt":
                 assert isinstance(value, float)
                 d.advance(value)
@@ -780,3 +790,10 @@ def test_any_sequence_keeps_a_valid_state(steps: list[tuple[str, object]]) -> No
         assert state_from_statusword(sw) is d.state
         assert -(1 << 31) <= d.position < (1 << 31)
         assert d.store.read_value(0x6061) in (1, 3, 6)
+        # the power stage is on exactly in the states that drive the motor
+        powered = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+        assert not sw & VOLTAGE or d.state in (*powered, State.FAULT_REACTION_ACTIVE)
+        assert d.state not in powered or sw & VOLTAGE
+        assert all(e.velocity != 0.0 for e in d.unsafe_stops)
+        assert d.motion_starts == sum(1 for e in d.events if e.kind is EventKind.MOTION_START) \
+            or len(d.events) == d.events.maxlen

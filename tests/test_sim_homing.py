@@ -12,10 +12,18 @@ from __future__ import annotations
 
 import pytest
 from canopen import SdoAbortedError
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from epos_link.cia402 import State
 from epos_link.simulator.drive import Drive, Mode
-from epos_link.simulator.homing import HomingStatus, VirtualSwitches
+from epos_link.simulator.homing import (
+    SUPPORTED_METHODS,
+    WITH_INDEX,
+    HomingStatus,
+    VirtualSwitches,
+    plan_homing,
+)
 from epos_link.simulator.od import ObjectStore, load_object_dictionary
 from epos_link.simulator.safety import EventKind
 
@@ -172,3 +180,27 @@ def test_homing_in_default_units_travels_in_rpm() -> None:
     d.advance(10.0)  # the default switch is 5 revolutions away: 3 s at 100 rpm
     assert d.homing_status is HomingStatus.DONE
     assert [e.kind for e in d.events] == [EventKind.MOTION_START]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.sampled_from(sorted(SUPPORTED_METHODS)), st.floats(-5000, 5000), st.integers(4, 10000),
+       st.floats(1, 1e5), st.floats(1, 1e4), st.floats(1, 1e6), st.integers(-1000, 1000))
+def test_plan_homing_properties(method: int, position: float, ipr: int, v1: float, v2: float,
+                                acc: float, offset: int) -> None:
+    sw = VirtualSwitches(-6000.0, 6000.0, 100.0, -7000.0, 7000.0, index_phase=3.0)
+    legs = plan_homing(method, position, sw, increments_per_revolution=ipr, switch_speed=v1,
+                       zero_speed=v2, acceleration=acc, offset_move=float(offset))
+    if method in (35, 37):
+        assert legs == []
+        return
+    assert legs and all(leg.speed in (v1, v2) for leg in legs)
+    found = legs[-2] if offset else legs[-1]  # where the home is found, before the offset move
+    if offset:
+        assert legs[-1].target == pytest.approx(found.target + offset)
+    if method in WITH_INDEX:
+        k = (found.target - sw.index_phase) / ipr
+        assert k == pytest.approx(round(k), abs=1e-6) and found.speed == v2
+    elif method in (17, 18, -1, -2) or method >= 23:
+        expected = {17: sw.negative_limit, 18: sw.positive_limit, -1: sw.positive_stop,
+                    -2: sw.negative_stop}.get(method, sw.home_switch)
+        assert found.target == expected

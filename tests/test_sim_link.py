@@ -87,3 +87,22 @@ def test_without_baud_the_answer_goes_at_once() -> None:
     fake = FakeTime()
     writes = serve_one(None, fake)
     assert writes == [(100.0, ANSWER)] and fake.sleeps == []
+
+
+def test_answers_follow_each_other_on_one_wire() -> None:
+    """Two frames answered from one read: the second starts when the first has left."""
+
+    class TwoAnswers(EchoDevice):
+        def receive(self, data: bytes) -> list[bytes]:
+            return [b"ab", b"cd"]
+
+    fake = FakeTime()
+    writes: list[tuple[float, bytes]] = []
+    feed = [b"12345"]
+    server = LinkServer(TwoAnswers(), LinkOptions(baud=10_000), clock=fake.clock, sleep=fake.sleep, spin=0.0)
+    server.serve_stream(lambda timeout: feed.pop() if feed else None,
+                        lambda data: writes.append((fake.now, bytes(data))))
+    per_byte = 10 / 10_000
+    start = 100.0 + 5 * per_byte
+    assert writes == [(pytest.approx(start + k * per_byte), bytes([c]))
+                      for k, c in enumerate(b"abcd", start=1)]
