@@ -1,4 +1,4 @@
-"""Simulator throughput and memory: ``python bench/sim.py [--runs 5] [-n 20000]``.
+"""Simulator throughput and memory: ``python bench/sim.py [--runs 5] [-n 20000] [--paced-only]``.
 
 1. ReadObject requests/s served over the in-process ``sim://`` transport, raw
    frames (the simulator's own cost) and through ``EposClient`` (the full stack);
@@ -105,7 +105,11 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("-n", type=int, default=20000)
     ap.add_argument("--memory-requests", type=int, default=100000)
+    ap.add_argument("--paced-only", action="store_true", help="only part 4, the --baud pacing")
     args = ap.parse_args()
+    if args.paced_only:
+        paced(115200, 500, args.runs)
+        return
     with Epos4Simulator(1) as sim:
         raw = statistics.median(raw_rate(sim, args.n) for _ in range(args.runs))
         full = statistics.median(client_rate(sim, args.n) for _ in range(args.runs))
