@@ -54,7 +54,9 @@ def write_event(writer: PcapngWriter, event: FrameEvent, start_wall: float) -> N
     if not event.raw:
         return
     outbound = None if event.direction is None else event.direction == Direction.TX.value
-    writer.packet(int(round((start_wall + event.time) * 1e9)), event.raw, outbound=outbound,
+    # Two roundings, not one: a double holds Unix time in ns only to ~256 ns.
+    time_ns = int(round(start_wall * 1e9)) + int(round(event.time * 1e9))
+    writer.packet(time_ns, event.raw, outbound=outbound,
                   comment="" if event.is_frame else f"not a frame: {event.decoded.problem}")
 
 
