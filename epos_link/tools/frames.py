@@ -20,6 +20,7 @@ Policy:
   segment has passed. Segment data kept for that is bounded by
   :data:`MAX_TRANSFER`; a longer transfer is shown without its value.
 * Objects missing from the dictionary are shown by index, their data in hex.
+  A damaged frame (bad CRC, bad layout) is never given a value.
 
 No clocks: times are whatever the caller passes in.
 """
@@ -165,8 +166,8 @@ class LinkDecoder:
 
     def _set_value(self, event: FrameEvent, data: bytes) -> None:
         typ = event.obj.type if event.obj is not None else None
-        if typ is None:
-            return
+        if typ is None or event.decoded.crc_ok is False or event.decoded.problem:
+            return  # a damaged frame's bytes are no value
         try:
             event.value = typ.decode(data)
         except Exception:  # too few bytes for the type: show the hex only
