@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_text, example) in COMMANDS.items():
-        p = sub.add_parser(name, help=argparse.SUPPRESS, description=f"{help_text}. Example: {example}")
+        p = sub.add_parser(name, description=f"{help_text}. Example: {example}")
         p.set_defaults(_module=module)
         importlib.import_module(module).add_arguments(p)
     return parser

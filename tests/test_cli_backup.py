@@ -117,3 +117,33 @@ def test_usage_errors_are_one_line(tmp_path: Path) -> None:
     assert p.returncode == 2 and "no such file" in p.stderr and "Traceback" not in p.stderr
     p = cli("backup", "sim://", "2", "--eds", str(tmp_path / "missing.eds"), "-o", str(tmp_path / "x.dcf"))
     assert p.returncode == 2 and "no such file" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "openpty"), reason="needs a pseudo-terminal")
+def test_progress_bar_on_a_terminal(drive: str, tmp_path: Path) -> None:
+    import os
+    import select
+
+    master, slave = os.openpty()
+    try:
+        p = subprocess.run([sys.executable, "-m", "epos_link.cli", "backup", drive, "2", "-o", str(tmp_path / "x.dcf")],
+                           stdout=subprocess.PIPE, stderr=slave, text=True, timeout=120)
+        os.close(slave)
+        slave = -1
+        seen = b""
+        while select.select([master], [], [], 0.5)[0]:
+            try:
+                chunk = os.read(master, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            seen += chunk
+    finally:
+        os.close(master)
+        if slave >= 0:
+            os.close(slave)
+    assert p.returncode == 0
+    text = seen.decode(errors="replace")
+    assert "\r[" in text and "] 1/" in text and "Device type" in text
+    assert "read" in text and "wrote" in text  # the summary

@@ -91,3 +91,17 @@ def test_random_input_only_gives_events(data: bytes, cuts: list[int]) -> None:
         pos += cut
     events += d.feed(0.0, "RX", data[pos:]) + d.close(0.0)
     assert all(e.raw for e in events)
+
+
+def test_segmented_write_value_comes_with_the_last_segment() -> None:
+    """fixtures/client_segmented_write.txt: 9 bytes to node 0 0x2100/0x01 in three segments."""
+    capture = read_capture((FIXTURES / "client_segmented_write.txt").read_text())
+    d = decoder()
+    events = [e for r in capture.records for e in d.feed(r.time, r.direction, r.data)]
+    tx = [e for e in events if e.direction == "TX"]
+    assert [e.decoded.name for e in tx] == ["InitiateSegmentedWrite", "SegmentWrite", "SegmentWrite", "SegmentWrite"]
+    assert all((e.node, e.index, e.subindex) == (0, 0x2100, 1) for e in events)
+    # 9 bytes fit no fixed-size type: whatever the EDS says of 0x2100/1, no value is made up.
+    assert all(e.value is None for e in events)
+    assert [e.answers for e in events if e.direction == "RX"] == [
+        "InitiateSegmentedWrite", "SegmentWrite", "SegmentWrite", "SegmentWrite"]

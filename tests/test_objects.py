@@ -45,6 +45,7 @@ def test_ambiguous_and_unknown_names(od) -> None:  # type: ignore[no-untyped-def
 def test_index_lookup_and_strings(od) -> None:  # type: ignore[no-untyped-def]
     assert od.find(0x1008, 0).type.name == "str"  # VISIBLE_STRING
     assert od.find(0x5FFF, 0) is None
+    assert od.find(0x6064, 1) is None  # a VAR has no subindex 1
     assert od.name_of(0x6081, 0) == "Profile velocity"
 
 

@@ -24,7 +24,6 @@ from ..capture import Capture, CaptureFormatError, Direction, Record, parse_hex,
 from ..codes import describe_error, opcode_name, OpCode
 from ..errors import CrcError, EposError, RemoteProtocolError
 from ..framing import NEED_DATA, Frame, FrameDecoder, encode_frame
-from .common import positive_float
 from ..messages import (
     InitiateSegmentedReadAnswer,
     InitiateSegmentedWrite,
@@ -219,6 +218,8 @@ def decode_bytes(data: bytes, *, responses: bool = False) -> Iterator[Decoded]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from .common import positive_float  # the link helpers, not needed to decode
+
     parser.add_argument("hex", nargs="*", help="frame bytes in hex (spaces optional); "
                         "omit to read hex or a capture from standard input, decoded as it arrives")
     parser.add_argument("-f", "--file", help="a capture file (epos-link capture format)")

@@ -164,10 +164,13 @@ class LinkDecoder:
         if self.directory is not None:
             event.obj = self.directory.find(index, subindex)
 
-    def _set_value(self, event: FrameEvent, data: bytes) -> None:
+    def _set_value(self, event: FrameEvent, data: bytes, *, exact: bool = False) -> None:
+        """``exact``: a whole segmented transfer, which must be the type's size."""
         typ = event.obj.type if event.obj is not None else None
         if typ is None or event.decoded.crc_ok is False or event.decoded.problem:
             return  # a damaged frame's bytes are no value
+        if exact and typ.size is not None and len(data) != typ.size:
+            return  # the transfer does not fit the dictionary's type: show the bytes only
         try:
             event.value = typ.decode(data)
         except Exception:  # too few bytes for the type: show the hex only
@@ -198,7 +201,7 @@ class LinkDecoder:
             self._lookup(t.node, t.index, t.subindex, event)
             t.add(bytes(req.data))
             if req.last and not t.overflow:
-                self._set_value(event, bytes(t.data))
+                self._set_value(event, bytes(t.data), exact=True)
         elif isinstance(req, SegmentRead) and conv.transfer is not None:
             t = conv.transfer
             self._lookup(t.node, t.index, t.subindex, event)
@@ -228,7 +231,7 @@ class LinkDecoder:
             t.add(line.data)
             done = bool(line.extra.get("last")) or (t.length is not None and len(t.data) >= t.length > 0)
             if done and not t.overflow:
-                self._set_value(event, bytes(t.data[:t.length] if t.length else t.data))
+                self._set_value(event, bytes(t.data[:t.length] if t.length else t.data), exact=True)
 
 
 __all__ = ["Conversation", "FrameEvent", "LinkDecoder", "MAX_TRANSFER"]

@@ -260,10 +260,15 @@ class ObjectDirectory:
         return out
 
     def variable(self, index: int, subindex: int) -> Optional[ODVariable]:
-        try:
-            return self.od.get_variable(index, subindex)
-        except (KeyError, TypeError):
-            return None
+        obj = self.od.get(index)
+        if isinstance(obj, ODVariable):
+            return obj if subindex == 0 else None  # a VAR has subindex 0 only (CiA 301 7.4.3)
+        if isinstance(obj, (ODRecord, ODArray)):
+            try:
+                return obj.get(subindex)
+            except (KeyError, TypeError):
+                return None
+        return None
 
     def find(self, index: int, subindex: int) -> Optional[ObjectInfo]:
         """The entry at index/subindex, or None when the dictionary lacks it."""
