@@ -166,6 +166,20 @@ class SimBridge:
     def position(self, node: int) -> int:
         return int(self.now(node).position)
 
+    def positions(self, *nodes: int) -> List[int]:
+        """The positions of several drives at one and the same instant."""
+        sims = [self.sim.drives[n] for n in nodes]
+        for sim in sims:
+            sim.lock.acquire()
+        try:
+            t = self.sim.clock()
+            for sim in sims:
+                sim.drive.update(t)  # no drive is past t: we hold every lock
+            return [int(sim.drive.position) for sim in sims]
+        finally:
+            for sim in sims:
+                sim.lock.release()
+
     def velocity(self, node: int) -> int:
         return int(self.now(node).velocity)
 

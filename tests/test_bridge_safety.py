@@ -195,18 +195,20 @@ def test_r14_is_in_user_units(bridge: SimBridge) -> None:
 
 def test_a_slave_moves_in_step_with_its_master(bridge: SimBridge) -> None:
     b = bridge
-    travel = 10.0
+    # 20 mm at 5 mm/s: the two start writes go out back to back (well under a
+    # millisecond apart, 0.005 mm at this speed); 1% of the travel is 0.2 mm.
+    travel = 20.0
     b.ok("3S04=1", "3S05=1", "3S06=5")  # the slave's own, much slower profile
-    b.ok("2S04=1", "2S05=20", "2S06=100", "2S29=3", "2S30=-1", f"2S02={travel}", "2S00=1")
+    b.ok("2S04=1", "2S05=5", "2S06=50", "2S29=3", "2S30=-1", f"2S02={travel}", "2S00=1")
     worst = 0.0
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 20
     while True:
-        master, slave = b.position(2) / FACTOR, b.position(3) / FACTOR
+        master, slave = (p / FACTOR for p in b.positions(2, 3))
         worst = max(worst, abs(master + slave))  # mirrored by S30=-1
         if master == travel and b.velocity(2) == 0:
             break
         assert time.monotonic() < deadline, "the master never arrived"
-        time.sleep(0.002)
+        time.sleep(0.005)
     b.wait_until(lambda: b.velocity(3) == 0)
     assert b.position(3) / FACTOR == -travel
     assert worst <= 0.01 * travel, f"slave and master apart by {worst} mm"
