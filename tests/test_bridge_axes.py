@@ -90,9 +90,9 @@ def test_addr_defaults_to_position_and_parameters_by_name_or_number() -> None:
     ({"bus": {"can1": {"interface": "virtual"}}}, "backend"),
     ({"extra": 1}, "extra"),
     # issue 10: an EPOS4 takes rpm, which needs the encoder's resolution
-    ({"axis": [{"node_id": 1, "device": 5}]}, "needs increments_per_revolution: the motor"),
+    ({"axis": [{"node_id": 1, "device": 5}]}, "increments_per_revolution: device 5 (maxon EPOS4) needs it"),
     ({"axis": [{"node_id": 1, "device": 5, "increments_per_revolution": 0}]},
-     "increments_per_revolution must be a positive integer"),
+     "increments_per_revolution: must be a positive integer"),
 ])
 def test_invalid_tables_are_refused_with_a_reason(change: Dict[str, Any], message: str) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace(".", r"\.")):
@@ -138,7 +138,7 @@ def test_device_5_needs_increments_per_revolution_from_the_command_line(tmp_path
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "axis 1" in lines[0] and "increments_per_revolution" in lines[0]
+    assert len(lines) == 1 and "[[axis]] AxAddr 1" in lines[0] and "increments_per_revolution" in lines[0]
 
 
 # --- the parameter array ----------------------------------------------------------
