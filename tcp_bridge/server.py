@@ -70,9 +70,11 @@ class ServerOptions:
 
 
 class _Connection:
-    def __init__(self, task: "asyncio.Task[None]", peer: object, now: float) -> None:
+    def __init__(self, task: "asyncio.Task[None]", writer: asyncio.StreamWriter, now: float
+                 ) -> None:
         self.task = task
-        self.peer = peer
+        self.writer = writer
+        self.peer = writer.get_extra_info("peername")
         self.busy = False  # a request in flight: never evicted, never idle
         self.waiting = False  # waiting for bytes between requests: may be evicted
         self.last_request = now  # loop time of the last complete request (or connect)
@@ -143,7 +145,7 @@ class BridgeServer:
             return
         task = asyncio.current_task()
         assert task is not None
-        conn = _Connection(task, peer, asyncio.get_running_loop().time())
+        conn = _Connection(task, writer, asyncio.get_running_loop().time())
         self._connections.add(conn)
         log.info("client %s connected", peer)
         try:

@@ -246,25 +246,31 @@ def test_failed_state_file_write_keeps_the_value_and_logs(tmp_path: Path,
 
 def test_state_file_is_written_in_the_background_newest_snapshot_wins(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import time
+    import threading
 
     import tcp_bridge.parameters as parameters
 
     writes = []
     real = parameters.write_atomically
+    disk = threading.Event()  # a disk that is stuck until the test lets it go
+    gave_up = []
 
     def slow_disk(path: Path, text: str) -> None:
-        time.sleep(0.1)  # a slow fsync
+        if not disk.wait(30):
+            gave_up.append(True)
         writes.append(json.loads(text))
         real(path, text)
     monkeypatch.setattr(parameters, "write_atomically", slow_disk)
     path = tmp_path / "s.json"
     store = ParameterStore(AxisTable.from_mapping(table()), path)
-    start = time.monotonic()
     for i in range(20):
         store.set(1, 54, i)  # returns at once: the caller is a bus worker
-    assert time.monotonic() - start < 0.05
+    # Every set() returned while the first write was still stuck on the disk
+    # (had one waited for it, the loop would have ended only after 30 s).
+    assert gave_up == [] and writes == []
+    disk.set()
     store.close()  # flushes
-    assert len(writes) <= 3  # coalesced, not 20 writes
+    assert len(writes) <= 2  # the stuck one and the newest: coalesced, not 20 writes
     assert writes[-1]["axes"]["1"]["parameters"] == {"54": 19}
+    assert gave_up == []
     assert ParameterStore(AxisTable.from_mapping(table()), path).get(1, 54) == 19

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -357,14 +358,21 @@ class NoAckNode(FakeNode):
 
 
 def test_unacknowledged_set_point_is_nak_within_the_bound() -> None:
-    engine, nodes = make()
+    now = [0.0]  # the engine's clock: each pause advances it (no wall clock, issue 12)
+
+    def sleep(dt: float) -> None:
+        now[0] += max(dt, 0.001)
+    t = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant"}},
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000,
+                                          "increments_per_revolution": IPR}]})
+    engine = build_engine(t, clock=lambda: now[0], sleep=sleep)
     node = NoAckNode(1)
     engine.axes[1].port.node = node  # type: ignore[union-attr]
     ok(engine, "1S04=1")
     ok(engine, "1S02=1")
-    start = time.monotonic()
+    start = now[0]
     assert ask(engine, "1S00=1").status is Status.NAK
-    assert time.monotonic() - start < 1.0  # ack_timeout is 0.2 s here
+    assert now[0] - start <= 0.2 + 0.002  # ack_timeout is 0.2 s here
     assert ok(engine, "1R86") == "0"  # never accepted
     assert engine.axes[1].drive.power_cycle_evidence is None  # type: ignore[union-attr]
 
@@ -591,9 +599,28 @@ def test_wait_for_node_waits_out_the_old_state_and_silence() -> None:
 # --- execution: buses serialised, parallel, loop never blocked -------------------------------
 
 
-class SlowNode(FakeNode):
+class HeldNode(FakeNode):
+    """Each upload is held until the test releases it; ``active`` counts the uploads in
+    flight on each bus, ``peak`` the most at once (no wall clock, issue 12)."""
+
+    lock = threading.Lock()
+
+    def __init__(self, node_id: int, bus: str, active: Dict[str, int], peak: Dict[str, int]) -> None:
+        super().__init__(node_id)
+        self.bus, self.active, self.peak = bus, active, peak
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
     def upload(self, index: int, subindex: int) -> bytes:
-        time.sleep(0.2)
+        with self.lock:
+            self.active[self.bus] += 1
+            self.peak[self.bus] = max(self.peak[self.bus], self.active[self.bus])
+        self.entered.set()
+        try:
+            assert self.release.wait(30), "never released"
+        finally:
+            with self.lock:
+                self.active[self.bus] -= 1
         return super().upload(index, subindex)
 
 
@@ -603,27 +630,37 @@ def test_one_bus_is_serialised_buses_run_in_parallel() -> None:
         "bus": {"can1": {"backend": "instant"}, "can2": {"backend": "instant"}},
         "axis": [{"node_id": 1}, {"node_id": 2}, {"node_id": 1, "bus_offset": 100000}],
     })
-    engine = Engine(t, {1: SlowNode(1), 2: SlowNode(2), 3: SlowNode(1)})
+    active = {"can1": 0, "can2": 0}
+    peak = dict(active)
+    nodes = {1: HeldNode(1, "can1", active, peak), 2: HeldNode(2, "can1", active, peak),
+             3: HeldNode(1, "can2", active, peak)}
+    engine = Engine(t, nodes)
 
-    async def timed(*lines: str) -> float:
-        start = time.monotonic()
-        await asyncio.gather(*(engine.execute(parse_request(l.encode())) for l in lines))
-        return time.monotonic() - start
+    async def entered(node: HeldNode) -> None:
+        assert await asyncio.get_running_loop().run_in_executor(None, node.entered.wait, 30)
 
-    async def scenario() -> Tuple[float, float, float]:
-        same = await timed("1R10", "2R10")  # one bus: 2 x 0.2 s
-        other = await timed("1R10", "3R10")  # two buses: 0.2 s
-        start = time.monotonic()
-        slow = asyncio.ensure_future(engine.execute(parse_request(b"1R10")))
-        await asyncio.sleep(0.01)
-        await engine.execute(parse_request(b"1R99"))  # answered while the bus is busy
-        inline = time.monotonic() - start
-        await slow
-        return same, other, inline
+    def request(line: str) -> "asyncio.Future[bytes]":
+        return asyncio.ensure_future(engine.execute(parse_request(line.encode())))
 
-    same, other, inline = asyncio.run(scenario())
+    async def scenario() -> None:
+        # One bus: while axis 1's transfer is held, axis 2's does not start.
+        first, second = request("1R10"), request("2R10")
+        await entered(nodes[1])
+        await asyncio.sleep(0.05)  # room for a wrong implementation to start axis 2
+        assert not nodes[2].entered.is_set() and active["can1"] == 1
+        # Two buses: axis 3 (can2) starts while axis 1 (can1) is still held.
+        third = request("3R10")
+        await entered(nodes[3])
+        # The event loop is not blocked by either: a request without a drive is answered.
+        assert (await asyncio.wait_for(engine.execute(parse_request(b"1R99")), 30)).startswith(b"1 R 99=")
+        for node in nodes.values():
+            node.release.set()
+        await asyncio.gather(first, second, third)
+
+    asyncio.run(scenario())
     engine.close()
-    assert same >= 0.39 and other < 0.35 and inline < 0.1
+    assert peak == {"can1": 1, "can2": 1}
+    assert nodes[2].entered.is_set()
 
 
 # --- companions (29/30 slave, 90 combined): nothing moves unless every axis can ----------
@@ -728,22 +765,23 @@ def test_a_stuck_state_file_never_stalls_the_bus(tmp_path: Any, monkeypatch: Any
     import tcp_bridge.parameters as parameters
 
     disk = threading.Event()
+    written = threading.Event()
     real = parameters.write_atomically
 
     def stuck(path: Any, text: str) -> None:
-        disk.wait(5)
+        disk.wait(30)
         real(path, text)
+        written.set()
     monkeypatch.setattr(parameters, "write_atomically", stuck)
     path = tmp_path / "s.json"
     t = AxisTable.from_mapping({"bridge": {**FAST, "state_file": str(path)},
                                 "bus": {"can1": {"backend": "instant"}},
                                 "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
     engine = build_engine(t)
-    start = time.monotonic()
     assert run_async(engine, "1S05=3").status is Status.ACK  # 6081h, then the arrays
     assert run_async(engine, "1S22=-1").status is Status.ACK
-    assert run_async(engine, "1R10").status is Status.ACK  # the bus is free
-    assert time.monotonic() - start < 1.0
+    assert run_async(engine, "1R10").status is Status.ACK  # the bus is free ...
+    assert not written.is_set()  # ... while the disk is still stuck (no wall clock)
     disk.set()
     engine.close()  # flushes the state file
     assert json.loads(path.read_text())["axes"]["1"]["parameters"] == {"22": -1, "5": 3000}

@@ -27,7 +27,7 @@ def url() -> Iterator[str]:
 
 def test_scan_with_short_timeout_finds_the_right_nodes(url: str) -> None:
     with EposClient.open(url) as client:
-        found = client.scan(range(1, 7), timeout=0.1)
+        found = client.scan(range(1, 7), timeout=0.2)  # below the gateway's 0.3 s, 100x an answer
     assert [n.node for n in found] == [1, 2, 5]
     for info in found:
         assert info.device_type == 0x00020192 and info.name == "EPOS4"
@@ -58,8 +58,10 @@ def test_a_silent_device_costs_a_bounded_wait() -> None:
                 elapsed = time.monotonic() - t0
         finally:
             link.close()
-    # 3 attempts of 0.1 s and 2 late-answer waits of 0.2 s: 0.7 s, plus scheduling slack.
-    assert 0.6 <= elapsed < 3.0
+    # 3 attempts of 0.1 s and 2 late-answer waits of 0.2 s: 0.7 s. The waits cannot be
+    # shorter; the upper bound is 10x that, as a loaded machine stretches them (issue 12).
+    assert 0.6 <= elapsed < 7.0
+    assert client.stats.calls == 1 and client.stats.retries == 2
 
 
 def test_a_damaged_late_answer_ends_the_wait() -> None:
@@ -95,4 +97,4 @@ def test_a_damaged_late_answer_ends_the_wait() -> None:
     link.reads.append(bytes.fromhex("90 02 00 04 00 00 00 00 92 01 02 00 00 00"))
     t0 = time.monotonic()
     assert struct.unpack("<I", client.read_object(0, 0x1000, 0))[0] == 0x00020192
-    assert time.monotonic() - t0 < 1.0  # did not sit out the 5 s late-answer wait
+    assert time.monotonic() - t0 < 4.0  # did not sit out the 5 s late-answer wait

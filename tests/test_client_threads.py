@@ -26,7 +26,7 @@ def test_two_threads_do_not_interleave(kind: str) -> None:
     responder = (SocketResponder if kind == "socket" else PtyResponder)(SCRIPT, delay=0.001)
     with responder as dev:
         link = open_transport(dev.url) if kind == "socket" else open_serial(dev.path)  # type: ignore[attr-defined]
-        client = EposClient(link, timeout=0.5, retries=0)
+        client = EposClient(link, timeout=5.0, retries=0)  # answers come in ms
         results: dict[int, list[int]] = {1: [], 2: []}
         errors: list[BaseException] = []
         start = threading.Barrier(2)

@@ -46,17 +46,17 @@ def test_silence_waits_for_the_timeout() -> None:
     r = replay()
     start = time.monotonic()
     assert r.read(10, 0.05) == b""
-    assert 0.04 <= time.monotonic() - start < 0.5
+    assert 0.04 <= time.monotonic() - start < 2.0  # waited, and returned (40x slack)
 
 
 def test_a_waiting_read_wakes_up_on_the_hosts_write() -> None:
     r = replay()
     got: list[bytes] = []
-    reader = threading.Thread(target=lambda: got.append(r.read(10, 2.0)))
+    reader = threading.Thread(target=lambda: got.append(r.read(10, 30.0)))
     reader.start()
     time.sleep(0.02)
     r.write(b"\x01\x02\x03\x04")
-    reader.join(2)
+    reader.join(30)
     assert got == [b"\xAA\xBB"]
 
 

@@ -53,7 +53,7 @@ def test_read_timeout_returns_nothing_in_time(kind: str) -> None:
         start = time.monotonic()
         assert link.read(100, 0.05) == b""
         took = time.monotonic() - start
-        assert 0.04 <= took < 0.5
+        assert 0.04 <= took < 2.0  # waited, and returned (40x slack)
         assert link.read(100, 0) == b""
         link.close()
 
@@ -122,7 +122,7 @@ def test_pty_hang_up_is_a_transport_error() -> None:
 
 def test_broken_socket_is_reopened_by_the_client() -> None:
     with SocketResponder({REQUEST: ANSWER}) as dev:
-        client = EposClient(open_transport(dev.url), timeout=0.2)
+        client = EposClient(open_transport(dev.url), timeout=5.0)  # answers come in ms
         assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
         # The connection breaks: the next call fails, reopens (a new connection) and retries.
         client.transport._sock.shutdown(2)  # type: ignore[attr-defined]
