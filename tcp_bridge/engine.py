@@ -143,7 +143,8 @@ class Engine:
 
     def __init__(self, table: AxisTable, nodes: Mapping[int, Any], *,
                  params: Optional[ParameterStore] = None, backends: Sequence[Any] = (),
-                 job_timeout: float = 60.0, link_probes: Mapping[str, Callable[[], Any]] = {},
+                 job_timeout: float = 60.0,
+                 link_probes: Optional[Mapping[str, Callable[[], Any]]] = None,
                  health_clock: Callable[[], float] = time.monotonic,
                  **cia402_options: Any) -> None:
         self.table = table
@@ -161,7 +162,7 @@ class Engine:
                                     on_change=log_change),
                           {a.node_id: nodes[a.addr] for a in table.axes.values()
                            if a.bus == bus and a.addr in nodes},
-                          link_probes.get(bus))
+                          (link_probes or {}).get(bus))
             for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
         }
         self.axes: Dict[int, AxisOps] = {}

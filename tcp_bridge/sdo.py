@@ -10,7 +10,9 @@ The command layer never sees a backend: it gets a *node*, an object with
 :class:`SdoPort` adds the data types of the CiA 301 / CiA 402 objects the
 gateway uses (so a U16 controlword goes out as 2 bytes and a statusword comes
 back unsigned), turns every failure into :class:`~tcp_bridge.errors.DeviceFailure`
-(answered NAK), and logs each transfer when command 91 "debug print" is on.
+(answered NAK), and logs each transfer when command 91 "debug print" is on. It
+tells its observer the outcome of every transfer, and :func:`silence_of` tells a
+silent bus's device from a silent node (fail-fast buses, :mod:`tcp_bridge.health`).
 """
 from __future__ import annotations
 
