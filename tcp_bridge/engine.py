@@ -31,6 +31,10 @@ unless every one can:
 
 A stop (S00=8, S90=0) is not gated: every axis is told to stop, whatever
 the others answer.
+
+Identical reads waiting in a bus's queue at the same time share one transfer
+(:mod:`tcp_bridge.shared_reads`, issue 14); every other request closes the
+open groups of the buses it touches, so a read after a write stays after it.
 """
 from __future__ import annotations
 
@@ -49,6 +53,7 @@ from .moves import Follower, plan_move, stored_profile
 from .operations import AxisOps
 from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
 from .sdo import SdoPort
+from .shared_reads import SHARE_WINDOW, SharedReads
 from .motion import Timing
 from .units import parse_value
 from .workers import BusWorker
@@ -80,6 +85,7 @@ class Job:
     gated: bool = False  # companions start only after this job succeeded (see steps())
     precheck: Tuple["Job", ...] = field(default_factory=tuple)  # before anything moves
     stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
+    share: Optional[Tuple[int, int]] = None  # (axis, command) of a read that may be shared
 
     def __call__(self) -> bytes:
         return self.run()
@@ -137,7 +143,8 @@ class Engine:
 
     def __init__(self, table: AxisTable, nodes: Mapping[int, Any], *,
                  params: Optional[ParameterStore] = None, backends: Sequence[Any] = (),
-                 job_timeout: float = 60.0, **cia402_options: Any) -> None:
+                 job_timeout: float = 60.0, share_window: float = SHARE_WINDOW,
+                 **cia402_options: Any) -> None:
         self.table = table
         self.params = params if params is not None else ParameterStore(table)
         self.debug = table.settings.debug
@@ -159,6 +166,13 @@ class Engine:
             bus: BusWorker(bus)
             for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
         }
+        self.shared: Dict[str, SharedReads] = {
+            bus: SharedReads(worker, window=share_window) for bus, worker in self._workers.items()}
+        for backend in self.backends:  # e.g. PDO mappings restored after a boot-up
+            attach = getattr(backend, "attach_worker", None)
+            worker = self._workers.get(getattr(backend, "name", None))  # type: ignore[arg-type]
+            if attach is not None and worker is not None:
+                attach(worker.post)
 
     # -- planning (event loop, no I/O) -------------------------------------------------
 
@@ -195,8 +209,9 @@ class Engine:
     def _prepare_read(self, request: ReadRequest, spec: CommandSpec, ops: AxisOps) -> Job:
         plan = ops.plan_read(spec)
         axis, cmd = request.axis, request.cmd
+        bus = self._bus(ops, spec)
         return Job(request, lambda: format_read_reply(axis, cmd, plan()),
-                   bus=self._bus(ops, spec), ops=ops)
+                   bus=bus, ops=ops, share=(axis, cmd) if bus is not None else None)
 
     def _prepare_write(self, request: Request, spec: CommandSpec, ops: AxisOps) -> Job:
         assert not isinstance(request, ReadRequest)
@@ -295,6 +310,8 @@ class Engine:
         return await self.run(self.prepare(request))
 
     async def run(self, job: Job) -> bytes:
+        if job.share is None:
+            self._close_shared(job)
         if job.bus is None and not job.companions:
             return job()  # nothing to wait for: answered on the loop
         loop = asyncio.get_running_loop()
@@ -320,9 +337,16 @@ class Engine:
                     self._submit(axis_job.stop).add_done_callback(_log_halt)
             raise
 
+    def _close_shared(self, job: Job) -> None:
+        """Shared reads, rule 3: a read after this request does not join one before it."""
+        for j in (job, *job.companions, *job.precheck):
+            for bus in (j.bus, j.ops.config.bus if j.ops is not None else None):
+                if bus in self.shared:
+                    self.shared[bus].close_groups()
+
     def _submit(self, job: Job) -> "asyncio.Future[bytes]":
         if job.bus is not None:
-            return self._workers[job.bus].submit(job)
+            return self.shared[job.bus].submit(job, job.share)
         future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
         try:
             future.set_result(job())

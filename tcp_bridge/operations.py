@@ -228,11 +228,11 @@ class AxisOps:
             return self._read_detailed_error
         if n == 12:
             index = 0x6062 if self.device is DeviceCode.C_DC_NANOTEC else 0x6064
-            return lambda: scaling.position_from_drive(port.read(index, 0))
+            return lambda: scaling.position_from_drive(port.read_status(index, 0))
         if n == 13:
             return lambda: scaling.from_drive(port.read(0x6067, 0))
         if n == 14:
-            return lambda: self.drive_scaling().velocity_from_drive(port.read(0x606C, 0))
+            return lambda: self.drive_scaling().velocity_from_drive(port.read_status(0x606C, 0))
         if n == 18:
             return lambda: port.read(0x1001, 0)
         if n in (33, 34):
@@ -246,23 +246,25 @@ class AxisOps:
             return lambda: port.read(selector.index, selector.subindex,
                                      size=selector.length, signed=signed)
         if n == 83:
-            return lambda: int(bool(port.read(0x60FD, 0) & LIMIT_INPUTS))
+            return lambda: int(bool(port.read_status(0x60FD, 0) & LIMIT_INPUTS))
         if spec.kind is CommandKind.STATUS_BIT:
             assert spec.bit is not None
             bit = spec.bit
 
             def status_bit() -> int:
-                sw = port.read(STATUSWORD, 0)
+                sw = port.read_status(STATUSWORD, 0)
                 if n == 82 and sw & Sw.TARGET_REACHED and not sw & Sw.OP_MODE_12:
                     # Reached in any mode but profile velocity, where bit 10 is
                     # "velocity reached" and bit 12 "speed is zero": still moving.
-                    return int(port.read(MODES_DISPLAY, 0) != Mode.PROFILE_VELOCITY)
+                    return int(port.read_status(MODES_DISPLAY, 0) != Mode.PROFILE_VELOCITY)
                 return (sw >> bit) & 1
             return status_bit
         obj = spec.obj
         if obj is None:
             raise AssertionError(f"no read for command {n}")
-        return lambda: port.read(obj.index, obj.subindex)  # raw: 09 10 15 50 52 61
+        if n == 10:  # from a PDO when the bus has them (tcp_bridge.backends.pdo_status)
+            return lambda: port.read_status(obj.index, obj.subindex)
+        return lambda: port.read(obj.index, obj.subindex)  # raw: 09 15 50 52 61
 
     def _stored(self, cmd: int) -> Optional[int]:
         return self.params.get(self.addr, cmd)

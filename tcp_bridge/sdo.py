@@ -84,6 +84,9 @@ class SdoPort:
         self.name = name
         self._debug = debug
         self._watchers: Dict[Tuple[int, int], Callable[[int], None]] = {}
+        # PDO-fed status (canopen backend, pdo = true; tcp_bridge.backends.pdo_status):
+        # told the end of every transfer, consulted by read_status().
+        self.feed: Any = getattr(node, "status_feed", None)
 
     def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
         """Call ``watcher(value)`` with every value of the object read through this port
@@ -94,8 +97,10 @@ class SdoPort:
         try:
             data = bytes(self.node.sdo.upload(index, subindex))
         except Exception as exc:
+            self._transferred((index, subindex))
             self._trace("upload", index, subindex, None, exc)
             self._raise_failure("read", index, subindex, exc)
+        self._transferred((index, subindex))
         self._trace("upload", index, subindex, data, None)
         return data
 
@@ -103,9 +108,29 @@ class SdoPort:
         try:
             self.node.sdo.download(index, subindex, bytes(data))
         except Exception as exc:
+            self._transferred(None)  # it may have arrived
             self._trace("download", index, subindex, data, exc)
             self._raise_failure("write", index, subindex, exc)
+        self._transferred(None)
         self._trace("download", index, subindex, data, None)
+
+    def _transferred(self, key: Optional[Tuple[int, int]]) -> None:
+        if self.feed is not None:
+            self.feed.note_transfer(key)
+
+    def read_status(self, index: int, subindex: int = 0) -> int:
+        """A read for a status poll (R10 R12 R14 R82 R83 R84): the newest PDO value if
+        it counts (:meth:`StatusFeed.value`), else :meth:`read` by SDO. Its watcher
+        sees it either way. Sequences that wait for the drive use :meth:`read`."""
+        value = self.feed.value(index, subindex) if self.feed is not None else None
+        if value is None:
+            return self.read(index, subindex)
+        if self._debug():
+            log.info("%s PDO 0x%04X/%d = %d", self.name, index, subindex, value)
+        watcher = self._watchers.get((index, subindex))
+        if watcher is not None:
+            watcher(value)
+        return value
 
     def read(self, index: int, subindex: int = 0, *, size: Optional[int] = None,
              signed: Optional[bool] = None) -> int:

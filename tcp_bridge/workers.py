@@ -27,7 +27,9 @@ from typing import Any, Callable, Optional, Tuple
 
 log = logging.getLogger(__name__)
 
-_Item = Optional[Tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[[], Any]]]
+# (loop, future, job); a posted job (post()) has neither loop nor future.
+_Item = Optional[Tuple[Optional[asyncio.AbstractEventLoop], Optional["asyncio.Future[Any]"],
+                       Callable[[], Any]]]
 
 
 def _resolve(future: "asyncio.Future[Any]", result: Any, error: Optional[BaseException]) -> None:
@@ -65,6 +67,18 @@ class BusWorker:
         self._queue.put((loop, future, job))
         return future
 
+    def post(self, job: Callable[[], Any]) -> None:
+        """Queue ``job`` with nobody waiting for it, from any thread (e.g. a CAN
+        notifier's callback: work for the bus, such as restoring a PDO mapping
+        after a boot-up). An exception is logged; after close() it is dropped."""
+        if not self._closed:
+            self._queue.put((None, None, job))
+
+    def queued(self) -> int:
+        """How many jobs wait in the queue (approximate across threads; the job in
+        flight is not counted). :mod:`tcp_bridge.shared_reads` stops gathering on it."""
+        return self._queue.qsize()
+
     def close(self, wait: bool = True) -> None:
         """Cancel the queued jobs, let the one in flight finish (joined if ``wait``)."""
         if self._closed:
@@ -75,7 +89,7 @@ class BusWorker:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if item is not None:
+            if item is not None and item[0] is not None and item[1] is not None:
                 _cancel(item[0], item[1])
         self._queue.put(None)
         if wait:
@@ -87,6 +101,12 @@ class BusWorker:
             if item is None:
                 return
             loop, future, job = item
+            if loop is None or future is None:
+                try:
+                    job()
+                except Exception:
+                    log.exception("bus %s: posted job %r failed", self.name, job)
+                continue
             if future.cancelled():  # read across threads: at worst one job runs in vain
                 continue
             result: Any = None
