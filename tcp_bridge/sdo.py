@@ -18,6 +18,7 @@ import logging
 from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
 
 from .errors import DeviceFailure
+from .shared_reads import NeedsBus
 
 log = logging.getLogger("tcp_bridge.sdo")
 
@@ -87,6 +88,7 @@ class SdoPort:
         # PDO-fed status (canopen backend, pdo = true; tcp_bridge.backends.pdo_status):
         # told the end of every transfer, consulted by read_status().
         self.feed: Any = getattr(node, "status_feed", None)
+        self._pdo_only = False  # within pdo_only(): no SDO transfer at all
 
     def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
         """Call ``watcher(value)`` with every value of the object read through this port
@@ -94,6 +96,8 @@ class SdoPort:
         self._watchers[(index, subindex)] = watcher
 
     def upload(self, index: int, subindex: int) -> bytes:
+        if self._pdo_only:
+            raise NeedsBus(f"0x{index:04X}/{subindex}")
         try:
             data = bytes(self.node.sdo.upload(index, subindex))
         except Exception as exc:
@@ -105,6 +109,8 @@ class SdoPort:
         return data
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
+        if self._pdo_only:
+            raise NeedsBus(f"0x{index:04X}/{subindex}")
         try:
             self.node.sdo.download(index, subindex, bytes(data))
         except Exception as exc:
@@ -117,6 +123,15 @@ class SdoPort:
     def _transferred(self, key: Optional[Tuple[int, int]]) -> None:
         if self.feed is not None:
             self.feed.note_transfer(key)
+
+    def pdo_only(self, plan: Callable[[], Any]) -> Any:
+        """Run ``plan`` answering only from PDOs; :class:`NeedsBus` at its first SDO.
+        For the event loop (tcp_bridge.shared_reads rule 5): it never blocks there."""
+        self._pdo_only = True
+        try:
+            return plan()
+        finally:
+            self._pdo_only = False
 
     def read_status(self, index: int, subindex: int = 0) -> int:
         """A read for a status poll (R10 R12 R14 R82 R83 R84): the newest PDO value if

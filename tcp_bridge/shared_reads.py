@@ -29,6 +29,14 @@ reads wait in the queue together, one transfer answers them all. The rules:
    never waits. Measured in ``bench/bridge.py`` (8 clients polling R10 on one
    axis of the simulated EPOS4 at 115200 baud).
 
+5. **Answered at once when the bus has nothing to do.** A read may come with a
+   ``fast`` plan that answers without the bus (PDO-fed status,
+   :mod:`tcp_bridge.backends.pdo_status`). It runs on the event loop only when
+   the worker is idle, nothing queued or running, so it overtakes nothing and
+   no thread touches the same drive meanwhile; when it raises
+   :class:`NeedsBus` (a value is not fresh from a PDO) the read is queued as
+   usual.
+
 The tables are bounded: open groups by the keys (configured axes x read
 commands), and so is the size of each key's last group.
 """
@@ -43,12 +51,18 @@ from typing import Any, Callable, Dict, Final, Hashable, List, Optional, Protoco
 SHARE_WINDOW: Final = 0.002  # seconds a group may wait for the requests it expects (rule 4)
 
 
+class NeedsBus(Exception):
+    """A fast plan cannot answer without the bus (rule 5): queue the read instead."""
+
+
 class Worker(Protocol):
     """What :class:`SharedReads` needs of a :class:`tcp_bridge.workers.BusWorker`."""
 
     def submit(self, job: Callable[[], Any]) -> "asyncio.Future[Any]": ...
 
     def queued(self) -> int: ...
+
+    def idle(self) -> bool: ...
 
 
 @dataclass
@@ -75,13 +89,26 @@ class SharedReads:
         self._last_size: Dict[Hashable, int] = {}
         self.transfers = 0  # jobs started (shared groups count once): for tests and bench
         self.requests = 0  # jobs and requests submitted
+        self.fast = 0  # reads answered on the event loop (rule 5)
 
     # -- the event loop side -----------------------------------------------------------
 
-    def submit(self, job: Callable[[], Any], key: Optional[Hashable] = None
-               ) -> "asyncio.Future[Any]":
-        """Queue ``job``; with ``key`` (a read), join an identical queued read if there is one."""
+    def submit(self, job: Callable[[], Any], key: Optional[Hashable] = None, *,
+               fast: Optional[Callable[[], Any]] = None) -> "asyncio.Future[Any]":
+        """Queue ``job``; with ``key`` (a read), join an identical queued read if there is
+        one; with ``fast`` too, answer at once if the bus is idle (rule 5)."""
         self.requests += 1
+        if key is not None and fast is not None and self.worker.idle():
+            done: "asyncio.Future[Any]" = asyncio.get_running_loop().create_future()
+            try:
+                done.set_result(fast())
+            except NeedsBus:
+                pass
+            except Exception as exc:
+                done.set_exception(exc)
+            if done.done():
+                self.fast += 1
+                return done
         if key is None:
             future = self.worker.submit(self._counted(job))
             self.close_groups()  # after the put: a gathering group sees it queued (rule 4)
@@ -159,4 +186,4 @@ def _settle(group: _Group, inner: "asyncio.Future[Any]") -> None:
             waiter.set_result(inner.result())
 
 
-__all__ = ["SHARE_WINDOW", "SharedReads"]
+__all__ = ["NeedsBus", "SHARE_WINDOW", "SharedReads"]

@@ -55,6 +55,12 @@ class BusWorker:
         self.name = name
         self._queue: "queue.SimpleQueue[_Item]" = queue.SimpleQueue()
         self._closed = False
+        # idle(): jobs queued so far (loop thread; posts under a lock) against jobs done
+        # (worker thread); each counter has one writer, so reading them needs no lock.
+        self._submitted = 0
+        self._posted = 0
+        self._post_lock = threading.Lock()
+        self._finished = 0
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
         self._thread.start()
 
@@ -64,6 +70,7 @@ class BusWorker:
             raise RuntimeError(f"bus {self.name}: worker is closed")
         loop = asyncio.get_running_loop()
         future: "asyncio.Future[Any]" = loop.create_future()
+        self._submitted += 1
         self._queue.put((loop, future, job))
         return future
 
@@ -72,7 +79,13 @@ class BusWorker:
         notifier's callback: work for the bus, such as restoring a PDO mapping
         after a boot-up). An exception is logged; after close() it is dropped."""
         if not self._closed:
+            with self._post_lock:
+                self._posted += 1
             self._queue.put((None, None, job))
+
+    def idle(self) -> bool:
+        """No job queued or running: nothing submitted so far can still touch the bus."""
+        return self._submitted + self._posted == self._finished
 
     def queued(self) -> int:
         """How many jobs wait in the queue (approximate across threads; the job in
@@ -100,22 +113,32 @@ class BusWorker:
             item = self._queue.get()
             if item is None:
                 return
-            loop, future, job = item
-            if loop is None or future is None:
-                try:
-                    job()
-                except Exception:
-                    log.exception("bus %s: posted job %r failed", self.name, job)
-                continue
-            if future.cancelled():  # read across threads: at worst one job runs in vain
-                continue
-            result: Any = None
-            error: Optional[BaseException] = None
+            self._run_one(*item)
+
+    def _run_one(self, loop: Optional[asyncio.AbstractEventLoop],
+                 future: Optional["asyncio.Future[Any]"], job: Callable[[], Any]) -> None:
+        """One job: posted (nobody waits for it) or submitted (its future is resolved).
+        It counts as finished before its future is resolved, so the reply's next
+        request already finds the worker idle."""
+        if loop is None or future is None:
             try:
-                result = job()
-            except Exception as exc:
-                error = exc
-            try:
-                loop.call_soon_threadsafe(_resolve, future, result, error)
-            except RuntimeError:  # the loop is closed
-                log.debug("bus %s: result of %r dropped, event loop closed", self.name, job)
+                job()
+            except Exception:
+                log.exception("bus %s: posted job %r failed", self.name, job)
+            finally:
+                self._finished += 1
+            return
+        if future.cancelled():  # read across threads: at worst one job runs in vain
+            self._finished += 1
+            return
+        result: Any = None
+        error: Optional[BaseException] = None
+        try:
+            result = job()
+        except Exception as exc:
+            error = exc
+        self._finished += 1
+        try:
+            loop.call_soon_threadsafe(_resolve, future, result, error)
+        except RuntimeError:  # the loop is closed
+            log.debug("bus %s: result of %r dropped, event loop closed", self.name, job)

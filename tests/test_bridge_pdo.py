@@ -10,6 +10,7 @@ exactly what they send without PDOs.
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from typing import Any, Callable, Dict, Iterator, List, Tuple
@@ -190,6 +191,18 @@ def test_status_polls_are_answered_from_pdos(rig: Rig) -> None:
         + polls_from_pdos(rig, "1R82") + polls_from_pdos(rig, "1R83") \
         + polls_from_pdos(rig, "1R84") + polls_from_pdos(rig, "1R14") == 0
     assert rig.ok("1R12") == "0"
+
+
+def test_the_server_path_answers_pdo_reads_without_the_bus_thread(rig: Rig) -> None:
+    rig.until(lambda: rig.feed(2).value(0x6041) is not None, "a first PDO")
+    shared = rig.engine.shared["can1"]
+    before, uploads = shared.fast, rig.uploads
+
+    async def polls() -> List[bytes]:
+        return [await rig.engine.execute(parse_request(line)) for line in (b"1R10", b"1R12")]
+    replies = asyncio.run(polls())
+    assert [decode_reply(r).status for r in replies] == [Status.ACK, Status.ACK]
+    assert shared.fast == before + 2 and rig.uploads == uploads
 
 
 def test_a_pdo_older_than_the_bound_falls_back_to_sdo(rig: Rig) -> None:

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tcp_bridge.shared_reads import SharedReads
+from tcp_bridge.shared_reads import NeedsBus, SharedReads
 from tcp_bridge.workers import BusWorker
 
 
@@ -31,6 +31,9 @@ class StepWorker:
 
     def queued(self) -> int:
         return len(self.jobs)
+
+    def idle(self) -> bool:
+        return not self.jobs
 
     def step(self) -> bool:
         """Run the oldest queued job (the worker's turn); False if there is none."""
@@ -317,3 +320,57 @@ def test_post_runs_a_job_nobody_waits_for_and_logs_its_failure(caplog: Any) -> N
     worker.close()
     assert "posted job" in caplog.text
     worker.post(ran.set)  # after close: dropped, no error
+
+
+# -- answered at once when the bus is idle (rule 5) --------------------------------------
+
+def test_a_fast_read_is_answered_at_once_only_when_the_bus_is_idle() -> None:
+    async def main() -> None:
+        bus = Bus()
+        now = bus.shared.submit(lambda: "bus", (1, 10), fast=lambda: "pdo")
+        assert now.done() and now.result() == "pdo" and bus.shared.fast == 1
+        write = bus.write("S04=1")  # queued: a read after it must wait behind it
+        later = bus.shared.submit(lambda: "bus", (1, 10), fast=lambda: "pdo")
+        assert not later.done()
+        await drain(bus)
+        assert write.done() and later.result() == "bus"
+    asyncio.run(main())
+
+
+def test_a_fast_read_that_needs_the_bus_is_queued() -> None:
+    async def main() -> None:
+        bus = Bus()
+
+        def stale() -> str:
+            raise NeedsBus("no fresh PDO")
+        read = bus.shared.submit(lambda: "bus", (1, 10), fast=stale)
+        assert not read.done() and bus.shared.fast == 0
+        await drain(bus)
+        assert read.result() == "bus"
+        failing = bus.shared.submit(lambda: "bus", (1, 10), fast=lambda: 1 / 0)
+        assert isinstance(failing.exception(), ZeroDivisionError)  # a real error is the answer
+    asyncio.run(main())
+
+
+def test_bus_worker_idle_counts_submitted_posted_and_finished_jobs() -> None:
+    worker = BusWorker("can1")
+    release = threading.Event()
+    posted = threading.Event()
+
+    async def main() -> None:
+        assert worker.idle()
+        busy = worker.submit(lambda: release.wait(10))
+        assert not worker.idle()
+        worker.post(posted.set)
+        release.set()
+        await busy
+        assert posted.wait(10)
+        for _ in range(1000):  # the posted job counts as finished right after it ran
+            if worker.idle():
+                break
+            await asyncio.sleep(0.01)
+        assert worker.idle()
+    try:
+        asyncio.run(main())
+    finally:
+        worker.close()
