@@ -5,16 +5,22 @@
 ``SdoBase`` with ``upload``/``download`` carried by :class:`EposClient`, the
 same trick canopen's own ``SdoServer`` uses. Everything built on ``SdoBase``
 works unchanged: ``node.sdo['Statusword'].raw``, ``.phys``, ``.bits``,
-``.desc``, records and arrays, ``var.open()``, ``node.store()``, the PDO
-configuration (``node.pdo.read()``), and ``BaseNode402`` state changes with
-``setup_402_state_machine(read_pdos=False)``.
+``.desc``, records and arrays, ``var.open()`` (text or binary, as canopen's),
+``node.store()``, the PDO configuration (``node.pdo.read()``), and
+``BaseNode402`` with ``setup_402_state_machine()``: the PDO configuration is
+read by SDO, as canopen does, and the state machine then runs on SDO, since no
+PDO arrives through the gateway.
 
 What the gateway carries (guide chapter 5): SDO, as ReadObject/WriteObject and
-segmented reads; NMT, as SendNMTService. What it cannot carry: PDO
-transmission and reception, SYNC, EMCY, heartbeat and node guarding, and a
-segmented write to a node other than the connected device (guide 2.1.2.2).
-Those raise :class:`GatewayLimitationError` naming the limitation, rather than
-canopen's "No actual Network object was assigned".
+segmented reads; NMT, as SendNMTService. :mod:`epos_link.canopen_gateway`
+states what ``nmt.state``, ``nmt.wait_for_bootup()`` and
+``network.scanner.search()`` mean through it. What it cannot carry: PDO
+transmission and reception, SYNC, EMCY, heartbeat and node guarding, block
+transfer, and a segmented write to a node other than the connected device
+(guide 2.1.2.2). Those raise :class:`GatewayLimitationError` naming the
+service, rather than canopen's "No actual Network object was assigned".
+
+Every successful SDO transfer tells the link's NMT view that the node answered.
 
 Errors are canopen's: a device error code becomes ``SdoAbortedError(code)``;
 timeouts, framing and link failures become ``SdoCommunicationError``.
@@ -25,28 +31,16 @@ import io
 from typing import Any, Callable, Optional, Union
 
 import canopen
-from canopen.nmt import NmtMaster
 from canopen.objectdictionary import ObjectDictionary
 from canopen.profiles.p402 import BaseNode402, OperationMode
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from canopen.sdo.base import SdoBase
 
+from .canopen_gateway import (GatewayLimitationError, GatewayNetwork, GatewayNmt, NmtView,
+                              limitation as _limitation, nmt_view, probe)
 from .client import EposClient
 from .errors import (DeviceError, EposError, EposTimeoutError, GatewayNotSupportedError,
                      RemoteProtocolError, TransportError)
-
-NMT_COB_ID = 0x000
-
-
-class GatewayLimitationError(SdoCommunicationError, GatewayNotSupportedError):
-    """A CANopen service that the EPOS4 USB/RS232 gateway cannot carry."""
-
-
-def _limitation(what: str) -> GatewayLimitationError:
-    return GatewayLimitationError(
-        f"{what} cannot be carried by the EPOS4 USB/RS232 gateway: it forwards only SDO "
-        "(ReadObject/WriteObject, segmented reads) and NMT (SendNMTService); use a CAN "
-        "adapter for PDO, SYNC, EMCY and heartbeat")
 
 
 class EposSdoClient(SdoBase):
@@ -56,24 +50,40 @@ class EposSdoClient(SdoBase):
                  link_node: Optional[int] = None) -> None:
         super().__init__(0x600 + node_id, 0x580 + node_id, od)
         self.client = client
+        self.canopen_id = node_id
+        self._view: NmtView = nmt_view(client)
         # The node id put in the serial frames: 0 addresses the connected EPOS4
         # itself (guide chapter 5), whatever its CANopen id.
         self.node_id = node_id if link_node is None else link_node
 
     def _call(self, fn: Callable[[], Any]) -> Any:
         try:
-            return fn()
+            result = fn()
         except DeviceError as exc:
             raise SdoAbortedError(exc.code) from exc
         except GatewayNotSupportedError as exc:
             raise GatewayLimitationError(str(exc)) from exc
         except (EposTimeoutError, RemoteProtocolError, TransportError) as exc:
             raise SdoCommunicationError(str(exc)) from exc
+        self._view.answered(self.canopen_id)
+        return result
 
     def _size(self, index: int, subindex: int) -> Optional[int]:
-        """The object's size from the dictionary: ReadObject always returns 4 bytes."""
+        """How to read an object: its size in bytes, or None for a segmented read.
+
+        ReadObject (guide 2.1.1.1) is the transfer for values of up to 4 bytes,
+        the one maxon's own library uses, and the only read the guide documents
+        through the gateway for other nodes; its answer always carries 4 bytes,
+        cut here to the object's size. So: a fixed size from the dictionary
+        decides; a string or domain (no fixed size) is read segmented; an object
+        the dictionary does not describe is read with ReadObject and its 4 data
+        bytes are returned. Describe larger objects in the dictionary (pass the
+        device's EDS) to read them whole.
+        """
         var = self.od.get_variable(index, subindex)
-        if var is not None and var.fixed_size:
+        if var is None:
+            return 4
+        if var.fixed_size:
             return len(var) // 8
         return None
 
@@ -95,7 +105,7 @@ class EposSdoClient(SdoBase):
         writing downloads it when the stream is closed."""
         if block_transfer:
             raise _limitation("SDO block transfer")
-        binary = "b" in mode or "t" not in mode
+        binary = "b" in mode  # canopen's SdoClient.open: text unless "b"
         if "r" in mode:
             raw: io.IOBase = io.BytesIO(self.upload(index, subindex))
         elif "w" in mode:
@@ -119,55 +129,6 @@ class _DownloadOnClose(io.BytesIO):
             self._send(data)
 
 
-class GatewayNetwork(canopen.Network):
-    """Stands in for a CAN network: NMT goes through SendNMTService, anything
-    that needs raw CAN frames raises :class:`GatewayLimitationError`."""
-
-    def __init__(self, client: EposClient) -> None:
-        super().__init__(bus=None)
-        self.client = client
-
-    def connect(self, *args: Any, **kwargs: Any) -> "GatewayNetwork":
-        raise _limitation("a CAN bus connection")
-
-    def subscribe(self, can_id: int, callback: Callable[..., Any]) -> None:
-        # Registering interest is harmless (pdo.read() does it); nothing will arrive.
-        super().subscribe(can_id, callback)
-
-    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        if can_id == NMT_COB_ID and len(data) >= 2:
-            command, node = data[0], data[1]
-            try:
-                self.client.nmt(node, command)
-            except EposError as exc:
-                raise SdoCommunicationError(f"NMT through the gateway failed: {exc}") from exc
-            return
-        raise _limitation(_describe_cob_id(can_id))
-
-    def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
-        raise _limitation(f"periodic CAN frames (COB-ID 0x{can_id:03X}: PDO, SYNC or heartbeat)")
-
-
-def _describe_cob_id(can_id: int) -> str:
-    """What a raw CAN frame would have been, by the default connection set (guide Table 3-15)."""
-    function = can_id & 0x780
-    kinds = {0x080: "a SYNC or EMCY message", 0x100: "a TIME message",
-             0x580: "a raw SDO frame", 0x600: "a raw SDO frame", 0x700: "a heartbeat or node guarding frame"}
-    kind = kinds.get(function, "a PDO" if 0x180 <= function <= 0x500 else "a raw CAN frame")
-    return f"{kind} (COB-ID 0x{can_id:03X})"
-
-
-class _GatewayNmt(NmtMaster):
-    def wait_for_heartbeat(self, timeout: float = 10) -> str:
-        raise _limitation("heartbeat")
-
-    def wait_for_bootup(self, timeout: float = 10) -> None:
-        raise _limitation("the boot-up message")
-
-    def start_node_guarding(self, period: float) -> None:
-        raise _limitation("node guarding")
-
-
 class _GatewayNodeMixin:
     """Shared by the RemoteNode and BaseNode402 flavours: SDO on the gateway."""
 
@@ -185,7 +146,7 @@ class _GatewayNodeMixin:
     def _attach_gateway(self) -> None:
         node: Any = self
         network = GatewayNetwork(self._epos_client)
-        node.nmt = _GatewayNmt(node.id)
+        node.nmt = GatewayNmt(node.id, self._epos_client)
         node.network = network
         for part in (node.sdo, node.pdo, node.tpdo, node.rpdo, node.nmt, node.emcy):
             part.network = network
@@ -243,6 +204,19 @@ class EposNode402(_GatewayNodeMixin, BaseNode402):
         self._link_node = link_node
         BaseNode402.__init__(self, node_id, od)
         self._attach_gateway()
+
+    def setup_pdos(self, upload: bool = True) -> None:
+        """canopen's, after one probe when the NMT state is not known yet.
+
+        canopen asserts that the node is PRE-OPERATIONAL or OPERATIONAL before
+        reading the PDO configuration by SDO. On a bus a heartbeat tells; here
+        the gateway can only ask, so a node never heard from is probed once
+        (read of 1000h) and is PRE-OPERATIONAL if it answers. A node this
+        adapter stopped is not probed: canopen's assertion stands.
+        """
+        if upload and self.nmt.state == "INITIALISING":
+            probe(self._epos_client, self.id)
+        super().setup_pdos(upload)
 
     # PDOs never arrive through the gateway, so values "from the last TPDO"
     # would be stale forever: the state machine always uses SDO, and the
@@ -309,6 +283,7 @@ def connect_node(url: Union[str, EposClient], node_id: int,
         if node_id == 0:
             # canopen needs a real node id: ask the EPOS4 for its own (0x2000).
             canopen_id = own_node_id(client)
+            nmt_view(client).answered(canopen_id)
             client.gateway_node_id = canopen_id
             link_node = 0
         if od is None:
@@ -340,3 +315,7 @@ def own_node_id(client: EposClient) -> int:
     if not 1 <= value <= 127:
         raise SdoCommunicationError(f"the EPOS4 reports node id {value}, not 1..127")
     return value
+
+
+__all__ = ["EposNode402", "EposRemoteNode", "EposSdoClient", "GatewayLimitationError",
+           "GatewayNetwork", "connect_node", "default_eds", "own_node_id"]

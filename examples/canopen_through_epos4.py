@@ -19,8 +19,10 @@ if url is None:
     url = link.path
 
 node = connect_node(url, 2, profile="402")       # node 2 sits behind the EPOS4 on CAN
-print("device:", node.sdo["Manufacturer device name"].raw)
-node.setup_402_state_machine(read_pdos=False)     # SDO only: the gateway carries no PDOs
+node.nmt.state = "RESET"                          # as canopen scripts for a CAN adapter begin
+node.nmt.wait_for_bootup(5)                       # through the gateway: until it answers SDO
+print("device:", node.sdo["Manufacturer device name"].raw, "NMT:", node.nmt.state)
+node.setup_402_state_machine()                    # PDO setup read by SDO; state machine on SDO
 node.state = "OPERATION ENABLED"
 node.op_mode = "PROFILED POSITION"
 node.sdo["Profile velocity"].raw = 20000

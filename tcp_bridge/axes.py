@@ -142,6 +142,9 @@ class AxisConfig:
     position_factor: int = 1
     # Configured parameter values in user units, by command number.
     parameters: Mapping[int, Number] = field(default_factory=dict)
+    # Device 5 (EPOS4): motor encoder increments per motor revolution, after
+    # quadrature (4 x 3010h/01h pulses); velocities are rpm (tcp_bridge.units).
+    increments_per_revolution: Optional[int] = None
 
     @property
     def bus(self) -> str:
@@ -244,7 +247,8 @@ def _settings(raw: Dict[str, Any], base_dir: Optional[Path], source: str) -> Set
 
 
 _AXIS_KEYS: Final = {"addr", "device", "internal", "bus_offset", "node_id", "position_factor",
-                     "parameters"}
+                     "parameters", "increments_per_revolution"}
+IPR_KEY: Final = "increments_per_revolution"
 
 
 def _axis(row: Dict[str, Any], position: int, source: str) -> AxisConfig:
@@ -270,9 +274,12 @@ def _axis(row: Dict[str, Any], position: int, source: str) -> AxisConfig:
     node_id = row.get("node_id", 0)
     if not isinstance(internal, bool) or not isinstance(addr, int) or not isinstance(node_id, int):
         raise ConfigError(f"{where}: addr and node_id are integers, internal is true/false")
+    ipr = row.get(IPR_KEY)
+    if ipr is not None and (isinstance(ipr, bool) or not isinstance(ipr, int) or ipr <= 0):
+        raise ConfigError(f"{where} (AxAddr {addr}): {IPR_KEY} must be a positive integer")
     params = _parameters(dict(row.get("parameters", {})), factor, f"{where} (AxAddr {addr})")
     return AxisConfig(addr, device, internal, bus_offset, node_id, factor,
-                      MappingProxyType(params))
+                      MappingProxyType(params), ipr)
 
 
 def _parameters(raw: Dict[str, Any], factor: int, where: str) -> Dict[int, Number]:
@@ -306,6 +313,10 @@ def _validate(table: AxisTable) -> None:
         if axis.internal and external_seen:
             raise ConfigError(f"internal axis {addr} follows a non-internal axis (spec 3.2)")
         external_seen = external_seen or not axis.internal
+        if axis.device is DeviceCode.C_DC_MAXON_EPOS4 and axis.increments_per_revolution is None:
+            raise ConfigError(f"axis {addr}: device 5 (maxon EPOS4) needs {IPR_KEY}: the motor "
+                              "encoder's increments per motor revolution (4 x pulses for an "
+                              "incremental encoder), because an EPOS4 takes velocities in rpm")
         if not axis.has_node:
             if not axis.internal:
                 raise ConfigError(f"axis {addr}: node_id 0 is only allowed for internal axes")
@@ -331,14 +342,30 @@ def simulated_table(count: int = 1, *, state_file: Optional[Path] = None,
     """``count`` simulated EPOS4 drives: node 1 is the gateway itself, 2..count behind it.
 
     Position factor 1000: the simulator counts increments, so user units are
-    mm at 1000 inc/mm.
+    mm at 1000 inc/mm. ``increments_per_revolution`` is the simulated encoder's
+    (3000h/05h of the simulator's object dictionary).
     """
     if not 1 <= count <= MAX_AXIS:
         raise ConfigError(f"--axes must be 1..{MAX_AXIS}, not {count}")
+    ipr = simulated_increments_per_revolution()
     axes = {
-        n: AxisConfig(n, DeviceCode.C_DC_MAXON_EPOS4, False, BusOffset.CAN1, n, 1000)
+        n: AxisConfig(n, DeviceCode.C_DC_MAXON_EPOS4, False, BusOffset.CAN1, n, 1000,
+                      MappingProxyType({}), ipr)
         for n in range(1, count + 1)
     }
     bus = BusConfig("can1", "sim", MappingProxyType(dict(bus_options or {})))
     return AxisTable(MappingProxyType(axes), MappingProxyType({"can1": bus}),
                      Settings(state_file=state_file))
+
+
+def simulated_increments_per_revolution() -> int:
+    """The main sensor resolution of the simulated EPOS4 (3000h/05h, EDS default)."""
+    from epos_link.simulator.od import load_object_dictionary
+
+    od = load_object_dictionary()
+    try:
+        return int(od[0x3000][5].default)
+    except KeyError:
+        # A simulator whose EDS has no sensor objects counts velocities in inc/s:
+        # 60 makes its "rpm" equal to inc/s at any factor (rpm = user*factor*60/ipr).
+        return 60

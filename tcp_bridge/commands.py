@@ -53,6 +53,15 @@ class CommandKind(Enum):
     INTERNAL = "internal"  # gateway state outside the parameter array (86, 91, 99)
 
 
+class Quantity(Enum):
+    """What a user-unit value measures; velocities and accelerations convert by the
+    drive's units (:class:`tcp_bridge.units.Scaling`), the rest by the factor."""
+
+    OTHER = "other"  # positions, distances, windows: user * factor
+    VELOCITY = "velocity"  # user/s: inc/s, or rpm on an EPOS4
+    ACCELERATION = "acceleration"  # user/s^2: inc/s^2, or rpm/s on an EPOS4
+
+
 class ValueType(Enum):
     """How the value text of a write is parsed (see tcp_bridge.units.parse_value)."""
 
@@ -91,6 +100,7 @@ class CommandSpec:
     needs_sdo: bool = False
     also_obj: Optional[ObjectRef] = None
     inverted_obj: Optional[ObjectRef] = None
+    quantity: "Quantity" = Quantity.OTHER
     bit: Optional[int] = None  # statusword bit of a STATUS_BIT command
     choices: Optional[FrozenSet[int]] = None
     value_range: Tuple[int, int] = INT32  # for INT; FLOAT is range-checked after scaling
@@ -121,6 +131,8 @@ def _o(index: int, subindex: int = 0) -> ObjectRef:
 
 _K = CommandKind
 _F = ValueType.FLOAT
+_V = Quantity.VELOCITY
+_A = Quantity.ACCELERATION
 _STATUSWORD = _o(0x6041)
 _CONTROLWORD = _o(0x6040)
 
@@ -139,9 +151,10 @@ _TABLE: Tuple[CommandSpec, ...] = (
                 choices=frozenset({0, 1}), unit="0=power off 1=power on",
                 note="enable: after a power cycle NodeReset and WriteParameter first"),
     CommandSpec(5, "Velocity", True, True, _K.PARAMETER, _o(0x6081), 7, "UserUnits/sec",
-                _F, scaled=True, user_units=True, needs_sdo=True),
+                _F, scaled=True, user_units=True, needs_sdo=True, quantity=_V),
     CommandSpec(6, "Acceleration", True, True, _K.PARAMETER, _o(0x6083), 8, "UserUnits/sec^2",
-                _F, scaled=True, user_units=True, needs_sdo=True, also_obj=_o(0x6084)),
+                _F, scaled=True, user_units=True, needs_sdo=True, also_obj=_o(0x6084),
+                quantity=_A),
     CommandSpec(7, "Mode of operation", True, True, _K.SEQUENCE, _o(0x6060), needs_sdo=True,
                 choices=frozenset({1, 3, 6}), unit="1=profile position 3=profile velocity 6=homing"),
     CommandSpec(9, "Quick-Stop option", True, True, _K.SDO, _o(0x605A), needs_sdo=True,
@@ -155,8 +168,10 @@ _TABLE: Tuple[CommandSpec, ...] = (
                 note="Nanotec reads 0x6062"),
     CommandSpec(13, "In Position Window", True, False, _K.SDO, _o(0x6067), unit="UserUnits",
                 value_type=_F, user_units=True, needs_sdo=True),
-    # No unit in the table, unlike 05: the raw drive value is returned.
-    CommandSpec(14, "Actual Velocity", True, False, _K.SDO, _o(0x606C), needs_sdo=True),
+    # No unit in the table; read in the unit of 05 (UserUnits/sec), so that
+    # a running S00=3 reads back as its own velocity.
+    CommandSpec(14, "Actual Velocity", True, False, _K.SDO, _o(0x606C), unit="UserUnits/sec",
+                value_type=_F, user_units=True, needs_sdo=True, quantity=_V),
     CommandSpec(15, "Mode of operation display", True, False, _K.SDO, _o(0x6061), needs_sdo=True),
     # NMT has no confirmation (CiA 301), so there is nothing to NAK.
     CommandSpec(16, "Reset Node", False, True, _K.ACTION, note="NMT reset node (CAN only)"),
@@ -179,12 +194,14 @@ _TABLE: Tuple[CommandSpec, ...] = (
                 value_type=_F, scaled=True, user_units=True,
                 note="offset position is converted before writing SDO"),
     CommandSpec(26, "Max Velocity", True, True, _K.PARAMETER, _o(0x607F), 16, "UserUnits/sec",
-                _F, scaled=True, user_units=True, needs_sdo=True,
+                _F, scaled=True, user_units=True, needs_sdo=True, quantity=_V,
                 note="only internal for Technosoft and Copley"),
     CommandSpec(27, "Max Acceleration", True, True, _K.PARAMETER, _o(0x60C5), 17,
-                "UserUnits/sec^2", _F, scaled=True, user_units=True, needs_sdo=True),
+                "UserUnits/sec^2", _F, scaled=True, user_units=True, needs_sdo=True,
+                quantity=_A),
     CommandSpec(28, "QuickStop Accel", True, True, _K.PARAMETER, _o(0x6085), 18,
-                "UserUnits/sec^2", _F, scaled=True, user_units=True, needs_sdo=True),
+                "UserUnits/sec^2", _F, scaled=True, user_units=True, needs_sdo=True,
+                quantity=_A),
     CommandSpec(29, "Slave Axis (AxAddr)", True, True, _K.PARAMETER, parameter=19,
                 value_range=(0, 60)),  # an AxAddr (spec 3.1); 0 = none
     CommandSpec(30, "Slave Axis direction", True, True, _K.PARAMETER, parameter=20,
@@ -204,11 +221,12 @@ _TABLE: Tuple[CommandSpec, ...] = (
     CommandSpec(40, "Homing Mode", True, True, _K.PARAMETER, _o(0x6098), 25, needs_sdo=True,
                 value_range=INT8),  # CiA 402: homing method is INTEGER8
     CommandSpec(41, "Homing Velocity (switch)", True, True, _K.PARAMETER, _o(0x6099, 1), 26,
-                "UserUnits/sec", _F, scaled=True, user_units=True, needs_sdo=True),
+                "UserUnits/sec", _F, scaled=True, user_units=True, needs_sdo=True, quantity=_V),
     CommandSpec(42, "Homing Velocity (index)", True, True, _K.PARAMETER, _o(0x6099, 2), 27,
-                "UserUnits/sec", _F, scaled=True, user_units=True, needs_sdo=True),
+                "UserUnits/sec", _F, scaled=True, user_units=True, needs_sdo=True, quantity=_V),
     CommandSpec(43, "Homing Acceleration", True, True, _K.PARAMETER, _o(0x609A), 28,
-                "UserUnits/sec^2", _F, scaled=True, user_units=True, needs_sdo=True),
+                "UserUnits/sec^2", _F, scaled=True, user_units=True, needs_sdo=True,
+                quantity=_A),
     CommandSpec(50, "Read Inputs", True, False, _K.SDO, _o(0x60FD), needs_sdo=True),
     CommandSpec(52, "Set Digital Outputs", True, True, _K.SDO, _o(0x60FE, 1), needs_sdo=True,
                 value_range=UINT32),  # CiA 402: 0x60FE is UNSIGNED32

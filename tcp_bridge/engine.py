@@ -16,8 +16,10 @@ has the one place that turns them into replies
 (:func:`tcp_bridge.protocol.format_error_reply`).
 
 A move of an axis with a slave (commands 29/30) also moves the slave with its
-direction; command 90 moves the configured internal axes. These *companion*
-jobs run on their own buses; the reply is ACK only if all of them succeed. A
+direction (:mod:`tcp_bridge.moves`): a slave on the master's bus moves in the
+master's own bus job, so both start together. Command 90 moves the configured
+internal axes, and a slave on another bus moves too: these *companion* jobs
+run on their own buses; the reply is ACK only if all of them succeed. A
 move that starts motion is *gated* (:func:`steps`) so that no axis moves
 unless every one can:
 
@@ -43,10 +45,11 @@ from .axes import AxisConfig, AxisTable, parameter_spec
 from .parameters import ParameterStore
 from .commands import CommandSpec, resolve
 from .errors import InvalidCommand
-from .operations import AxisOps, note_failure
+from .moves import Follower, plan_move, stored_profile
+from .operations import AxisOps
 from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
 from .sdo import SdoPort
-from .sequences import Timing
+from .motion import Timing
 from .units import parse_value
 from .workers import BusWorker
 
@@ -79,12 +82,7 @@ class Job:
     stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
 
     def __call__(self) -> bytes:
-        try:
-            return self.run()
-        except Exception as exc:
-            if self.ops is not None:
-                note_failure(self.ops, exc)
-            raise
+        return self.run()
 
 
 Outcome = Union[bytes, BaseException]
@@ -131,7 +129,7 @@ def steps(job: Job) -> Steps:
 
 def _log_halt(future: "asyncio.Future[bytes]") -> None:
     if not future.cancelled() and future.exception() is not None:
-        log.error("halt after a timed-out multi-axis move failed: %s", future.exception())
+        log.error("halt after a timed-out move failed: %s", future.exception())
 
 
 class Engine:
@@ -210,11 +208,12 @@ class Engine:
         how = int(value) if spec.number in (0, 90) else None
         if spec.number == 90:
             plan, companions = self._plan_combined_move(request, int(value))
+        elif spec.number == 0:
+            followers, companions = self._plan_slave_move(request, ops, int(value))
+            plan = plan_move(ops, int(value), followers)
+            stop = self._halt_job(request, ops, followers)
         else:
             plan = ops.plan_write(spec, value)
-            if spec.number == 0:
-                companions = self._plan_slave_move(request, ops, int(value))
-                stop = self._halt_job(request, ops)
 
         def run() -> bytes:
             plan()
@@ -228,20 +227,28 @@ class Engine:
         return Job(request, run, bus=bus, ops=ops, companions=companions,
                    gated=gated, precheck=precheck, stop=stop)
 
-    def _plan_slave_move(self, request: Request, master: AxisOps, how: int) -> Tuple[Job, ...]:
-        """Spec 29/30: the slave follows the master's move, with its direction."""
+    def _plan_slave_move(self, request: Request, master: AxisOps,
+                         how: int) -> Tuple[Tuple[Follower, ...], Tuple[Job, ...]]:
+        """Spec 29/30: the slave follows the master's move, with its direction.
+
+        Returns (followers moved in the master's own job, companion jobs): a slave
+        on the master's bus is a follower, one on another bus a companion.
+        """
         slave_addr = self.params.get(master.addr, 29) or 0
         slave = self.axes.get(slave_addr)
         if slave is None or slave is master or slave.port is None:
-            return ()
+            return (), ()
         direction = -1 if self.params.get(master.addr, 30) == -1 else 1
+        if slave.config.bus == master.config.bus:
+            return (Follower(slave, direction),), ()
         target = None
         if how in (1, 2):
             target = self.params.user(master.addr, 2)
         elif how == 3:
             target = self.params.user(master.addr, 5)
-        plan = slave.plan_move(how, slave.scaling(), direction, target)
-        return (self._companion(request, slave, plan),)
+        plan = plan_move(slave, how, target=target, direction=direction,
+                         profile=stored_profile(master))
+        return (), (self._companion(request, slave, plan),)
 
     def _plan_combined_move(self, request: Request, how: int) -> Tuple[Callable[[], None], Tuple[Job, ...]]:
         """Spec 90 with 3.2: 0 stop, 1 LINR (relative by each 02), 2 LINA to zero."""
@@ -253,11 +260,11 @@ class Engine:
         jobs = []
         for ops in internal:
             if how == 0:
-                plan = ops.plan_move(8, ops.scaling())
+                plan = plan_move(ops, 8)
             elif how == 1:
-                plan = ops.plan_move(2, ops.scaling())
+                plan = plan_move(ops, 2)
             else:
-                plan = ops.plan_move(1, ops.scaling(), target=0.0)
+                plan = plan_move(ops, 1, target=0.0)
             jobs.append(self._companion(request, ops, plan))
         return (lambda: None), tuple(jobs)
 
@@ -270,10 +277,11 @@ class Engine:
     def _companion(self, request: Request, ops: AxisOps, plan: Callable[[], None]) -> Job:
         return replace(self._axis_job(request, ops, plan), stop=self._halt_job(request, ops))
 
-    def _halt_job(self, request: Request, ops: AxisOps) -> Optional[Job]:
+    def _halt_job(self, request: Request, ops: AxisOps,
+                  followers: Sequence[Follower] = ()) -> Optional[Job]:
         if ops.drive is None:
             return None
-        return self._axis_job(request, ops, ops.drive.halt)
+        return self._axis_job(request, ops, plan_move(ops, 8, followers))
 
     @staticmethod
     def _require_enabled(ops: AxisOps) -> Callable[[], Any]:
@@ -303,10 +311,11 @@ class Engine:
         except StopIteration as done:
             return done.value  # type: ignore[no-any-return]
         except asyncio.TimeoutError:
-            # A multi-axis move ran out of time part-way: some axes may be moving
-            # while the others' moves were cancelled. Halt them all (queued on
-            # their buses, not awaited: the request already failed).
-            for axis_job in (job, *job.companions) if job.companions else ():
+            # The safety net ran out before the move's own bounds did: the job
+            # may still start its axes after the NAK. Halt every axis of the
+            # request (queued behind it on each bus, not awaited: the request
+            # already failed), so that a NAK never leaves an axis moving.
+            for axis_job in (job, *job.companions):
                 if axis_job.stop is not None:
                     self._submit(axis_job.stop).add_done_callback(_log_halt)
             raise

@@ -5,7 +5,10 @@ converted and range-checked first (pure, on the event loop; a failure raises
 :class:`~tcp_bridge.errors.InvalidCommand`, answered CAN, and nothing reaches a
 drive), and the result is a closure that performs the SDO transfers (in the
 axis's bus worker thread). Parameters are stored only after the drive took
-them, so a NAK means "nothing changed".
+them, so a NAK means "nothing changed". Everything that changes the power
+state or moves the axis (00, 04, 07, 16, 17) goes through
+:mod:`tcp_bridge.motion`, which holds the safety rule; moves are planned in
+:mod:`tcp_bridge.moves`.
 
 Rules not spelled out by the spec, chosen here:
 
@@ -15,30 +18,37 @@ Rules not spelled out by the spec, chosen here:
   drive's value converted.
 * 05 Velocity is signed: the sign is the direction of a velocity move (S00=3);
   0x6081 (UNSIGNED32) gets the magnitude.
+* Velocities and accelerations convert by the drive's units
+  (:mod:`tcp_bridge.units`): rpm and rpm/s on an EPOS4 (device 5), whose
+  velocity unit 60A9h is read from the drive the first time it is needed.
+  A unit the bridge does not know is logged once, and that axis's velocity
+  commands answer NAK. 14 Actual Velocity is in user units/s, like 05.
 * 26 is "only internal for Technosoft and Copley" and 63 "only Nanotec": for
   other devices they are stored without SDO.
 * 11 Detailed Error (spec 4.b): Technosoft devices map their motion error
   register 2000h; every other device composes it from the error code 603Fh
-  (CiA 301 Table 21 classes, maxon limit switch codes) and 60FDh limit inputs.
+  (CiA 301 classes; maxon EPOS4 codes 8A80h-8A88h) and 60FDh limit inputs.
 * 18 General Error is the CiA 301 error register 1001h (spec 4.c has its bits).
 * 82 is statusword bit 10; in profile velocity mode, where bit 10 means
   "velocity reached", it is bit 10 and bit 12 ("speed is zero"), so a running
   velocity move reads 0. The mode is the drive's (6061h), read in the same
-  job, and only when it matters (bit 10 set, bit 12 clear): a mode changed by
-  raw SDO, another master or a reset is never mistaken.
+  job, and only when it matters (bit 10 set, bit 12 clear).
+* 83 End switch hit is the limit switch inputs of 60FDh (CiA 402-2: bit 0
+  negative, bit 1 positive limit switch), not statusword bit 11, which an
+  EPOS4 also sets while it limits current or velocity.
 """
 from __future__ import annotations
 
 import logging
-from typing import Callable, Final, List, Optional, Tuple, Union
+from typing import Callable, Dict, Final, List, Optional, Tuple, Union
 
 from .axes import AxisConfig, DeviceCode, parameter_spec, to_stored
-from .parameters import ParameterStore
-from .commands import CommandKind, CommandSpec, ObjectRef, SdoSelector
+from .commands import CommandKind, CommandSpec, ObjectRef, Quantity, SdoSelector
 from .errors import DeviceFailure, InvalidCommand
+from .motion import MODES_DISPLAY, STATUSWORD, Cia402, Mode, State, Sw, Timing, Why
+from .parameters import ParameterStore
 from .sdo import NodeSilent, SdoPort, object_type
-from .sequences import MODES_DISPLAY, STATUSWORD, Cia402, Mode, Sw, State, Timing
-from .units import Number, Scaling
+from .units import DriveUnits, Number, Scaling, velocity_exponent
 
 log = logging.getLogger(__name__)
 
@@ -46,24 +56,39 @@ Value = Union[int, float, str]
 ReadPlan = Callable[[], Value]
 WritePlan = Callable[[], None]
 
+VELOCITY_UNIT: Final = ObjectRef(0x60A9)  # EPOS4: SI unit velocity
 _NOT_INTERNAL_26: Final = {DeviceCode.C_DC_TECHNOSOFT_CAN, DeviceCode.C_DC_TECHNOSOFT_EC,
                            DeviceCode.C_DC_COBLEY_CAN}
 # Technosoft motion error register 2000h bit -> spec 4.b bit.
 _TECHNOSOFT_MER: Final = {1: 1, 3: 3, 4: 4, 5: 5, 6: 6, 7: 7, 8: 10, 11: 11, 12: 12, 13: 13, 15: 15}
 # Parameters written by 85 "write parameters" and after a power cycle, in this order.
-_DRIVE_PARAMETERS: Final = (26, 27, 5, 6, 28, 23, 24, 40, 41, 42, 43, 53, 62, 63)
+DRIVE_PARAMETERS: Final = (26, 27, 5, 6, 28, 23, 24, 40, 41, 42, 43, 53, 62, 63)
+# maxon EPOS4 error codes (603Fh) -> spec 4.b bit (EPOS4 Firmware Specification,
+# error code table: 8A80h negative limit switch, 8A81h positive limit switch,
+# 8A82h software position limit, 8A88h STO).
+_MAXON_BITS: Final = {0x8A80: 7, 0x8A81: 6, 0x8A88: 15}
+SOFTWARE_LIMIT_ERROR: Final = 0x8A82
+LIMIT_INPUTS: Final = 0x3  # 60FDh bit 0 negative, bit 1 positive limit switch
 
 
-def detailed_error_from_code(code: int, inputs: int) -> int:
-    """Spec 4.b register from a CiA 301 / maxon error code (603Fh) and 60FDh inputs."""
+def detailed_error_from_code(code: int, inputs: int, software_limit_bit: int = 0) -> int:
+    """Spec 4.b register from a CiA 301 / maxon error code (603Fh) and 60FDh inputs.
+
+    ``software_limit_bit`` (8 positive, 9 negative) says which side a software
+    position limit error (8A82h) is on; the code alone does not say.
+    """
     bits = 0
     group, sub = code >> 12, (code >> 4) & 0xF
-    if code == 0x2320:
+    if code in _MAXON_BITS:
+        bits |= 1 << _MAXON_BITS[code]
+    elif code == SOFTWARE_LIMIT_ERROR:
+        bits |= 1 << software_limit_bit if software_limit_bit else 0
+    elif code == 0x2320:
         bits |= 1 << 1  # short circuit
     elif group == 0x2:
         bits |= 1 << 10  # current
     elif group == 0x3:
-        bits |= 1 << (12 if sub == 1 else 13 if sub == 2 else 12)  # over/under voltage
+        bits |= 1 << (13 if sub == 2 else 12)  # under / over voltage
     elif group == 0x4:
         bits |= 1 << 11  # temperature
     elif code >> 8 == 0x73:
@@ -72,10 +97,6 @@ def detailed_error_from_code(code: int, inputs: int) -> int:
         bits |= 1 << 4  # communication
     elif code == 0x8611:
         bits |= 1 << 3  # following error
-    elif code == 0x8A88:
-        bits |= 1 << 7  # maxon: negative limit switch
-    elif code == 0x8A89:
-        bits |= 1 << 6  # maxon: positive limit switch
     if inputs & 0x1:  # CiA 402-2 60FDh bit 0: negative limit switch
         bits |= 1 << 7
     if inputs & 0x2:  # bit 1: positive limit switch
@@ -93,8 +114,17 @@ class AxisOps:
         self.params = params
         self.port = port
         self.drive = Cia402(port, timing, **cia402_options) if port is not None else None  # type: ignore[arg-type]
-        self.power_cycled = True  # spec 2.1: first enable after power-up resets and writes
-        self.moving_ack = 0  # command 86
+        self.moving_ack = 0  # command 86: 1 once the drive accepted a move
+        self.velocity_exponent: Optional[int] = None  # EPOS4 60A9h prefix, once read
+        self.unit_error: Optional[str] = None
+        # Profile objects of a slave that followed its master's profile, with the
+        # values to put back before it moves on its own (tcp_bridge.moves).
+        self.borrowed_profile: Dict[ObjectRef, int] = {}
+        nmt = getattr(getattr(port, "node", None), "nmt", None)
+        if self.drive is not None and hasattr(nmt, "add_heartbeat_callback"):
+            drive = self.drive
+            # CiA 301 7.2.8.3.2.4: a boot-up message is a heartbeat with state 0.
+            nmt.add_heartbeat_callback(lambda state: drive.note_bootup() if state == 0 else None)
 
     # -- helpers ---------------------------------------------------------------------
 
@@ -103,7 +133,37 @@ class AxisOps:
         return self.params.device(self.addr)
 
     def scaling(self) -> Scaling:
-        return self.params.scaling(self.addr)
+        """The axis's conversions now; for an EPOS4 with the velocity prefix last read."""
+        base = self.params.scaling(self.addr)
+        if self.device is not DeviceCode.C_DC_MAXON_EPOS4:
+            return base
+        ipr = self.config.increments_per_revolution
+        if ipr is None:
+            raise InvalidCommand(f"axis {self.addr}: device 5 needs increments_per_revolution "
+                                 "in the axis table")
+        units = DriveUnits(ipr, self.velocity_exponent or 0)
+        return Scaling(base.factor, base.inversion, base.offset, units)
+
+    def drive_scaling(self, quantity: Quantity = Quantity.VELOCITY) -> Scaling:
+        """:meth:`scaling` on the bus worker: reads 60A9h first when a velocity needs it."""
+        if self.device is DeviceCode.C_DC_MAXON_EPOS4 and quantity is Quantity.VELOCITY:
+            self._read_velocity_unit()
+        return self.scaling()
+
+    def _read_velocity_unit(self) -> None:
+        if self.velocity_exponent is not None:
+            return
+        if self.unit_error is None:
+            raw = self._port().read(VELOCITY_UNIT.index, VELOCITY_UNIT.subindex)
+            try:
+                self.velocity_exponent = velocity_exponent(raw)
+                log.info("axis %d: velocity unit 0x%08X (rpm x 10^%d)", self.addr, raw,
+                         self.velocity_exponent)
+                return
+            except ValueError as exc:
+                self.unit_error = f"axis {self.addr}: {exc}; velocity commands are refused"
+                log.error("%s", self.unit_error)
+        raise DeviceFailure(self.unit_error)
 
     def _port(self) -> SdoPort:
         if self.port is None:
@@ -129,6 +189,24 @@ class AxisOps:
             return self.parameter_object(spec) is not None
         return spec.needs_sdo or spec.number == 16
 
+    # -- conversions by quantity ------------------------------------------------------
+
+    @staticmethod
+    def to_drive(spec: CommandSpec, scaling: Scaling, user: Number) -> int:
+        if spec.quantity is Quantity.VELOCITY:
+            return scaling.velocity_to_drive(user)
+        if spec.quantity is Quantity.ACCELERATION:
+            return scaling.acceleration_to_drive(user)
+        return scaling.to_drive(user)
+
+    @staticmethod
+    def from_drive(spec: CommandSpec, scaling: Scaling, raw: int) -> float:
+        if spec.quantity is Quantity.VELOCITY:
+            return scaling.velocity_from_drive(raw)
+        if spec.quantity is Quantity.ACCELERATION:
+            return scaling.acceleration_from_drive(raw)
+        return scaling.from_drive(raw)
+
     # -- reads -------------------------------------------------------------------------
 
     def plan_read(self, spec: CommandSpec) -> ReadPlan:
@@ -152,6 +230,8 @@ class AxisOps:
             return lambda: scaling.position_from_drive(port.read(index, 0))
         if n == 13:
             return lambda: scaling.from_drive(port.read(0x6067, 0))
+        if n == 14:
+            return lambda: self.drive_scaling().velocity_from_drive(port.read(0x606C, 0))
         if n == 18:
             return lambda: port.read(0x1001, 0)
         if n in (33, 34):
@@ -164,6 +244,8 @@ class AxisOps:
             signed = signed and size == selector.length
             return lambda: port.read(selector.index, selector.subindex,
                                      size=selector.length, signed=signed)
+        if n == 83:
+            return lambda: int(bool(port.read(0x60FD, 0) & LIMIT_INPUTS))
         if spec.kind is CommandKind.STATUS_BIT:
             assert spec.bit is not None
             bit = spec.bit
@@ -179,7 +261,7 @@ class AxisOps:
         obj = spec.obj
         if obj is None:
             raise AssertionError(f"no read for command {n}")
-        return lambda: port.read(obj.index, obj.subindex)  # raw: 09 10 14 15 50 52 61
+        return lambda: port.read(obj.index, obj.subindex)  # raw: 09 10 15 50 52 61
 
     def _stored(self, cmd: int) -> Optional[int]:
         return self.params.get(self.addr, cmd)
@@ -194,17 +276,17 @@ class AxisOps:
         if obj is None:
             value: Value = 0 if user is None else user  # the controller's arrays start at 0
             return lambda: value
-        port, scaling = self._port(), self.scaling()
+        port = self._port()
 
         def read() -> Value:
             raw = port.read(obj.index, obj.subindex)
-            if n == 5 and user is not None and scaling.to_drive(abs(user)) == raw:
-                return user  # the sign is ours (direction of a velocity move)
             if user is not None:
-                return user
+                return user  # the stored value (for 05 with its sign: the direction)
             if n == 2:
-                return scaling.position_from_drive(raw)
-            return scaling.from_drive(raw) if spec.scaled else raw
+                return self.scaling().position_from_drive(raw)
+            if not spec.scaled:
+                return raw
+            return self.from_drive(spec, self.drive_scaling(spec.quantity), raw)
         return read
 
     def _read_detailed_error(self) -> int:
@@ -219,7 +301,16 @@ class AxisOps:
             raise
         except DeviceFailure:
             inputs = 0  # no digital inputs object (an abort): only the error code counts
-        return detailed_error_from_code(code, inputs)
+        side = self._software_limit_side() if code == SOFTWARE_LIMIT_ERROR else 0
+        return detailed_error_from_code(code, inputs, side)
+
+    def _software_limit_side(self) -> int:
+        """Spec 4.b bit 8 (positive) or 9 (negative) for an EPOS4 software limit error:
+        the side whose limit (607Dh) the position (6064h) is nearer to."""
+        port = self._port()
+        position = port.read(0x6064, 0)
+        low, high = port.read(0x607D, 1), port.read(0x607D, 2)
+        return 9 if abs(position - low) < abs(position - high) else 8
 
     # -- writes ------------------------------------------------------------------------
 
@@ -232,24 +323,22 @@ class AxisOps:
                 self.moving_ack = int(value)
             return set_ack
         if n == 0:
-            return self.plan_move(int(value), self.scaling())
+            from .moves import plan_move
+
+            return plan_move(self, int(value))
         port = self._port()
         drive = self._drive()
-        if n == 4:
-            return self._enable if value == 1 else drive.disable
-        if n == 7:
+        if n == 4:  # motion rules 1 and 3 (tcp_bridge.motion)
+            return (lambda: drive.enable(self)) if value == 1 else drive.disable
+        if n == 7:  # motion rule 2: a mode change halts first
             mode = int(value)
-
             return lambda: drive.set_mode(mode)
-        if n == 16:
-            def reset_node() -> None:
-                port.nmt_reset()
-                self.power_cycled = True
-            return reset_node
+        if n == 16:  # motion rule 1: the client asked for exactly this
+            return lambda: drive.reset_node(Why.CLIENT_RESET_NODE)
         if n == 17:
             return drive.fault_reset
         if n == 85:
-            return self._plan_write_parameters()
+            return self.write
         if n == 81:
             selector = SdoSelector.from_value(self._stored(80) or 0)
             bits = 8 * selector.length
@@ -274,32 +363,38 @@ class AxisOps:
         stored = to_stored(parameter_spec(n), value, factor)  # range-checks scaled values
         if n == 29 and stored and (stored == self.addr or stored not in self.params.table.axes):
             raise InvalidCommand(f"slave axis {stored} is not another configured axis", cmd=29)
+        if n == 19 and stored == DeviceCode.C_DC_MAXON_EPOS4 \
+                and self.config.increments_per_revolution is None:
+            raise InvalidCommand(f"axis {self.addr} has no increments_per_revolution in the "
+                                 "axis table, which device 5 needs", cmd=19)
         if n == 80:
             SdoSelector.from_value(stored)  # length 1..4
         obj = self.parameter_object(spec)
-        writes = self._drive_writes(n, value) if obj is not None else []
+        if obj is not None:
+            self._drive_writes(n, value, self.scaling())  # range check, before any transfer
         port = self.port
 
         def write() -> None:
-            for o, raw in writes:
+            if obj is not None:
                 assert port is not None
-                port.write(o.index, o.subindex, raw)
+                for o, raw in self._drive_writes(n, value, self.drive_scaling(spec.quantity)):
+                    port.write(o.index, o.subindex, raw)
+                    self.borrowed_profile.pop(o, None)  # the drive holds our own value now
             self.params.set(self.addr, n, stored)
         return write
 
-    def _drive_writes(self, n: int, user: Number) -> List[Tuple[ObjectRef, int]]:
+    def _drive_writes(self, n: int, user: Number, scaling: Scaling) -> List[Tuple[ObjectRef, int]]:
         """(object, drive value) pairs for parameter ``n`` at user value ``user``."""
         spec = parameter_spec(n)
         obj = self.parameter_object(spec)
         if obj is None:
             return []
-        scaling = self.scaling()
         if n == 2:
             raw = scaling.position_to_drive(user)
         elif n == 5:
-            raw = scaling.to_drive(abs(user))
+            raw = scaling.velocity_to_drive(abs(user))
         elif spec.scaled:
-            raw = scaling.to_drive(user)
+            raw = self.to_drive(spec, scaling, user)
         else:
             raw = int(user)
         size, signed = object_type(obj.index, obj.subindex)
@@ -312,80 +407,56 @@ class AxisOps:
             writes.append((spec.also_obj, raw))  # acceleration is deceleration too
         return writes
 
-    def _plan_write_parameters(self) -> WritePlan:
-        """Command 85 and the power-cycle path of 04: every stored drive parameter."""
-        writes = []
-        for n in _DRIVE_PARAMETERS:
-            user = self.params.user(self.addr, n)
+    # -- the parameters as kept by the bridge (motion.Restore) ------------------------
+
+    def _stored_writes(self) -> List[Tuple[ObjectRef, int]]:
+        """The stored drive parameters in drive units. With a velocity unit the bridge
+        does not know, the velocities are left out (they answer NAK on their own)."""
+        stored = {n: self.params.user(self.addr, n) for n in DRIVE_PARAMETERS}
+        scaling = self.scaling()
+        if any(v is not None and parameter_spec(n).quantity is Quantity.VELOCITY
+               for n, v in stored.items()):
+            try:
+                scaling = self.drive_scaling()
+            except NodeSilent:
+                raise
+            except DeviceFailure:  # unknown unit, already logged
+                stored = {n: v for n, v in stored.items()
+                          if parameter_spec(n).quantity is not Quantity.VELOCITY}
+        writes: List[Tuple[ObjectRef, int]] = []
+        for n, user in stored.items():
             if user is not None:
-                writes.extend(self._drive_writes(n, user))
+                writes.extend(self._drive_writes(n, user, scaling))
+        return writes
+
+    def write(self) -> None:
+        """Command 85 and the power-cycle path of 04: every stored drive parameter."""
         port = self._port()
+        port.read(STATUSWORD, 0)  # the drive is there, even with nothing to write
+        for obj, raw in self._stored_writes():
+            port.write(obj.index, obj.subindex, raw)
+            self.borrowed_profile.pop(obj, None)
 
-        def write_all() -> None:
-            port.read(STATUSWORD, 0)  # the drive is there, even with nothing to write
-            for obj, raw in writes:
-                port.write(obj.index, obj.subindex, raw)
-        return write_all
+    def differs(self) -> Optional[str]:
+        """Why the drive no longer holds the stored parameters, None if it does (rule 3).
 
-    def _enable(self) -> None:
-        """04 = 1: after a power cycle NMT reset and write the parameters first (spec 2.1)."""
-        drive, port = self._drive(), self._port()
-        if self.power_cycled:
-            drive.statusword()  # an absent node answers NAK now, not after reset_timeout
-            port.nmt_reset()
-            drive.wait_for_node()
-            self._plan_write_parameters()()
-            self.power_cycled = False
-        drive.enable()
-
-    # -- moves (00) ----------------------------------------------------------------------
-
-    def plan_move(self, how: int, scaling: Scaling, direction: int = 1,
-                  target: Optional[Number] = None) -> WritePlan:
-        """00 Move: 1 absolute, 2 relative, 3 velocity, 8 stop, 9 home.
-
-        ``direction`` (-1 or 1) and ``target`` (user units) are given for a
-        slave axis, which follows its master's value with its own direction.
+        A profile a slave borrowed from its master is not a difference. An object
+        the drive does not have (an abort) is skipped.
         """
-        drive = self._drive()
-        if how in (1, 2):
-            user = self.params.user(self.addr, 2) if target is None else target
-            if user is None:
-                raise InvalidCommand(f"axis {self.addr}: no target position (S02) set", cmd=0)
-            user = user * direction
-            if how == 1:
-                raw = scaling.position_to_drive(user)
-            else:  # a distance: inverted and scaled, never offset
-                raw = scaling.to_drive(user) * scaling.inversion
-
-            def start() -> None:
-                drive.move_position(raw, relative=how == 2)
-        elif how == 3:
-            velocity = self.params.user(self.addr, 5) if target is None else target
-            if velocity is None:
-                raise InvalidCommand(f"axis {self.addr}: no velocity (S05) set", cmd=0)
-            raw = scaling.to_drive(velocity * direction) * scaling.inversion
-
-            def start() -> None:
-                drive.move_velocity(raw)
-        elif how == 9:
-            def start() -> None:
-                drive.home()
-        else:  # 8: stop
-            return drive.halt
-
-        def move() -> None:
-            self.moving_ack = 0  # spec: 86 is 0 before the move ...
-            start()
-            self.moving_ack = 1  # ... and 1 once the drive accepted it
-        return move
+        port = self._port()
+        self.velocity_exponent = None  # 60A9h may be back at its saved value
+        for obj, raw in self._stored_writes():
+            if obj in self.borrowed_profile:
+                continue
+            try:
+                held = port.read(obj.index, obj.subindex)
+            except NodeSilent:
+                raise
+            except DeviceFailure:
+                continue
+            if held != raw:
+                return (f"0x{obj.index:04X}/{obj.subindex} holds {held}, the bridge wrote {raw}")
+        return None
 
 
-def note_failure(ops: AxisOps, exc: BaseException) -> None:
-    """A node that stopped answering may have been power cycled: re-init on next enable."""
-    if isinstance(exc, NodeSilent):
-        ops.power_cycled = True
-
-
-__all__ = ["AxisOps", "Value", "detailed_error_from_code", "note_failure"]
-
+__all__ = ["AxisOps", "DRIVE_PARAMETERS", "Value", "detailed_error_from_code"]

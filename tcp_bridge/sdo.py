@@ -35,6 +35,8 @@ OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
     (0x6085, None): (4, False), (0x6098, None): (1, True), (0x6099, None): (4, False),
     (0x609A, None): (4, False), (0x60C5, None): (4, False), (0x60FD, None): (4, False),
     (0x60FE, None): (4, False), (0x60FF, None): (4, True), (0x6502, None): (4, False),
+    # maxon EPOS4 (EPOS4 EDS): SI unit velocity, main sensor resolution, encoder pulses.
+    (0x60A9, None): (4, False), (0x3000, 5): (4, False), (0x3010, 1): (4, False),
 }
 
 
@@ -81,6 +83,12 @@ class SdoPort:
         self.node = node
         self.name = name
         self._debug = debug
+        self._watchers: Dict[Tuple[int, int], Callable[[int], None]] = {}
+
+    def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
+        """Call ``watcher(value)`` with every value of the object read through this port
+        (the statusword: :class:`tcp_bridge.motion.Cia402` sees every poll)."""
+        self._watchers[(index, subindex)] = watcher
 
     def upload(self, index: int, subindex: int) -> bytes:
         try:
@@ -102,8 +110,12 @@ class SdoPort:
     def read(self, index: int, subindex: int = 0, *, size: Optional[int] = None,
              signed: Optional[bool] = None) -> int:
         t_size, t_signed = object_type(index, subindex)
-        return decode(self.upload(index, subindex), size or t_size,
-                      t_signed if signed is None else signed)
+        value = decode(self.upload(index, subindex), size or t_size,
+                       t_signed if signed is None else signed)
+        watcher = self._watchers.get((index, subindex))
+        if watcher is not None:
+            watcher(value)
+        return value
 
     def write(self, index: int, subindex: int, value: int, *, size: Optional[int] = None,
               signed: Optional[bool] = None) -> None:

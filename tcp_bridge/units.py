@@ -13,6 +13,19 @@ command 22, ``offset`` in user units from command 25)::
                       inversion -1: 33 from 0x607D/1, 34 from 0x607D/2
                       each converted as a position
 
+Velocities and accelerations (05 06 14 26-28 41-43 and the velocity of a
+00=3 move) depend on the drive. Devices 1-4 count them in increments per
+second (per second squared), so they convert with the factor like any other
+user-unit value. A maxon EPOS4 (device 5) counts velocities in rpm and
+accelerations in rpm/s (EPOS4 EDS: 60A9h SI unit velocity 0x00B44700 = rpm,
+60AAh SI unit acceleration fixed at rpm/s), where a revolution is the main
+sensor's resolution in increments (3000h/05h; 4 x 3010h/01h pulses for an
+incremental encoder). So, with ``ipr`` the axis's ``increments_per_revolution``
+and ``10**e`` the power-of-ten prefix in the most significant byte of 60A9h::
+
+    velocity       rpm   = user/s * factor * 60 / ipr,  drive = rpm / 10**e
+    acceleration   rpm/s = user/s^2 * factor * 60 / ipr
+
 So a finished move to ``S02=x`` reads back ``R12 = x``, and an inverted axis
 shows its drive's minimum limit as its positive limit (the parenthesised
 objects of 33/34 in the spec's table). Stored parameters marked ``*`` hold
@@ -28,7 +41,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from decimal import ROUND_HALF_UP, Decimal
-from typing import Tuple, Union
+from typing import Final, Optional, Tuple, Union
 
 from .commands import INT32, CommandSpec, ValueType
 from .errors import InvalidCommand
@@ -54,6 +67,37 @@ def _to_int32(d: Decimal, what: str, sign: int = 1) -> int:
     return n
 
 
+RPM: Final = 0x00B44700  # 60A9h: prefix 00 (10^0), B4h revolutions, 47h per minute
+# Prefixes the bridge knows for 60A9h (CiA 402-2 6.2 / CiA 303-2 notation, a
+# signed power of ten in the most significant byte): 10^0 down to 10^-6.
+VELOCITY_EXPONENTS: Final = frozenset(range(-6, 1))
+
+
+def velocity_exponent(unit: int) -> int:
+    """The power of ten of a 60A9h value in rpm; :class:`ValueError` for any other unit."""
+    if unit & 0x00FFFFFF != RPM & 0x00FFFFFF:
+        raise ValueError(f"velocity unit 0x{unit:08X} is not rpm (expected 0x..B44700)")
+    exponent = int.from_bytes(bytes([unit >> 24 & 0xFF]), "little", signed=True)
+    if exponent not in VELOCITY_EXPONENTS:
+        raise ValueError(f"velocity unit 0x{unit:08X}: prefix 10^{exponent} is not supported")
+    return exponent
+
+
+@dataclass(frozen=True)
+class DriveUnits:
+    """How a drive counts velocities and accelerations (see the module docstring)."""
+
+    increments_per_revolution: Optional[int] = None  # None: inc/s (devices 1-4)
+    velocity_exponent: int = 0  # EPOS4 60A9h prefix: drive value = rpm / 10**exponent
+
+    def __post_init__(self) -> None:
+        ipr = self.increments_per_revolution
+        if ipr is not None and (isinstance(ipr, bool) or not isinstance(ipr, int) or ipr <= 0):
+            raise ValueError(f"increments_per_revolution must be a positive integer, not {ipr!r}")
+        if self.velocity_exponent not in VELOCITY_EXPONENTS:
+            raise ValueError(f"velocity prefix 10^{self.velocity_exponent} is not supported")
+
+
 @dataclass(frozen=True)
 class Scaling:
     """The conversion parameters of one axis (spec 3.6, commands 22 and 25)."""
@@ -61,6 +105,7 @@ class Scaling:
     factor: int = 1
     inversion: int = 1
     offset: float = 0.0
+    units: DriveUnits = DriveUnits()
 
     def __post_init__(self) -> None:
         if isinstance(self.factor, bool) or not isinstance(self.factor, int) or self.factor <= 0:
@@ -76,6 +121,37 @@ class Scaling:
     def from_drive(self, raw: int) -> float:
         """``raw / factor``: a drive value (not a position) in user units."""
         return float(_dec(raw) / self.factor)
+
+    def _per_rev(self) -> Decimal:
+        """Drive rpm per user unit per second (EPOS4), from ``factor`` and ``ipr``."""
+        ipr = self.units.increments_per_revolution
+        assert ipr is not None
+        return Decimal(self.factor) * 60 / ipr
+
+    def velocity_to_drive(self, user: Number) -> int:
+        """A velocity in user units/s for the drive (inc/s, or rpm with its prefix)."""
+        if self.units.increments_per_revolution is None:
+            return self.to_drive(user)
+        rpm = _dec(user) * self._per_rev()
+        return _to_int32(rpm.scaleb(-self.units.velocity_exponent), "velocity")
+
+    def velocity_from_drive(self, raw: int) -> float:
+        """A drive velocity (inc/s, or rpm with its prefix) in user units/s."""
+        if self.units.increments_per_revolution is None:
+            return self.from_drive(raw)
+        rpm = _dec(raw).scaleb(self.units.velocity_exponent)
+        return float(rpm / self._per_rev())
+
+    def acceleration_to_drive(self, user: Number) -> int:
+        """An acceleration in user units/s^2 for the drive (inc/s^2, or rpm/s)."""
+        if self.units.increments_per_revolution is None:
+            return self.to_drive(user)
+        return _to_int32(_dec(user) * self._per_rev(), "acceleration")
+
+    def acceleration_from_drive(self, raw: int) -> float:
+        if self.units.increments_per_revolution is None:
+            return self.from_drive(raw)
+        return float(_dec(raw) / self._per_rev())
 
     def position_to_drive(self, user: Number) -> int:
         """``round((user - offset) * factor) * inversion``: a user position for the drive."""

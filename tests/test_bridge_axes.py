@@ -15,6 +15,10 @@ import pytest
 from tcp_bridge.axes import DEFAULTS, AxisTable, BusOffset, ConfigError, DeviceCode, simulated_table
 from tcp_bridge.parameters import ParameterStore, write_atomically
 
+# An EPOS4 (device 5) takes rpm: rpm = user/s * factor * 60 / IPR. With IPR 60 and
+# factor 1000 a drive value is user * 1000, the hand-worked values of spec 3.6.
+IPR = 60
+
 EXAMPLE = Path(str(resources.files("tcp_bridge") / "example_axes.toml"))
 
 
@@ -22,7 +26,7 @@ def table(**extra: Any) -> Dict[str, Any]:
     data: Dict[str, Any] = {
         "bus": {"can1": {"backend": "instant"}, "can2": {"backend": "instant"}},
         "axis": [
-            {"device": 5, "node_id": 1, "position_factor": 1000,
+            {"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR,
              "parameters": {"velocity": 2.5, "offset": 1.25, "26": 50}},
             {"addr": 2, "device": "nanotec", "node_id": 3, "bus_offset": 100000},
         ],

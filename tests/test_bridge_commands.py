@@ -84,7 +84,9 @@ def test_scaled_commands_are_the_starred_parameters() -> None:
 
 
 def test_user_unit_commands() -> None:
-    assert {n for n, c in COMMANDS.items() if c.user_units} == STARRED | {12, 13, 33, 34}
+    # 14 has no unit in the spec's table; the bridge reads it in the unit of 05
+    # (issue 10: R14 in user units, so a velocity move reads back its own speed).
+    assert {n for n, c in COMMANDS.items() if c.user_units} == STARRED | {12, 13, 14, 33, 34}
     for c in COMMANDS.values():
         assert c.user_units == c.unit.startswith("UserUnits")
         assert (c.value_type is ValueType.FLOAT) == c.user_units
@@ -310,3 +312,11 @@ def test_huge_user_value_is_rejected_after_scaling() -> None:
     assert value == 1e40
     with pytest.raises(InvalidCommand):
         Scaling(1).to_drive(value)
+
+
+def test_velocity_and_acceleration_commands_are_marked() -> None:
+    # They convert by the drive's units (rpm, rpm/s on an EPOS4), the rest by the factor.
+    from tcp_bridge.commands import Quantity
+    assert {n for n, c in COMMANDS.items() if c.quantity is Quantity.VELOCITY} == {5, 14, 26, 41, 42}
+    assert {n for n, c in COMMANDS.items()
+            if c.quantity is Quantity.ACCELERATION} == {6, 27, 28, 43}

@@ -24,7 +24,7 @@ import pytest
 
 from epos_link.simulator.core import Epos4Simulator
 from epos_link.simulator.link import PtyLink
-from tcp_bridge.axes import AxisTable
+from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
 from tcp_bridge.commands import COMMANDS
 from tcp_bridge.engine import build_engine
 from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
@@ -54,8 +54,11 @@ class Bridge:
             bus = {"backend": "epos", "url": self.link.path, "baudrate": 115200,
                    "timeout": 0.5, "gateway_node_id": 1}
             nodes = (1, 2)
-        axes = [{"device": 5, "node_id": n, "position_factor": 1000} for n in nodes]
-        axes.append({"device": 5, "node_id": 9, "position_factor": 1000})  # absent
+        ipr = simulated_increments_per_revolution()
+        axes = [{"device": 5, "node_id": n, "position_factor": 1000,
+                 "increments_per_revolution": ipr} for n in nodes]
+        axes.append({"device": 5, "node_id": 9, "position_factor": 1000,
+                     "increments_per_revolution": ipr})  # absent
         table = AxisTable.from_mapping({"bridge": TIMING, "bus": {"can1": bus}, "axis": axes})
         self.engine = build_engine(table)
         self.loop = asyncio.new_event_loop()

@@ -22,7 +22,11 @@ from tcp_bridge.engine import Engine, build_engine, software_version
 from tcp_bridge.errors import DeviceFailure
 from tcp_bridge.operations import detailed_error_from_code
 from tcp_bridge.protocol import Reply, Status, decode_reply, format_error_reply, parse_request
-from tcp_bridge.sequences import Cia402, State, Timing, decode_state
+from tcp_bridge.motion import Cia402, State, Timing, decode_state
+
+# An EPOS4 (device 5) takes rpm: rpm = user/s * factor * 60 / IPR. With IPR 60 and
+# factor 1000 a drive value is user * 1000, the hand-worked values of spec 3.6.
+IPR = 60
 
 FAST = {"ack_timeout": 0.2, "state_timeout": 0.2, "reset_timeout": 0.2, "reset_delay": 0.0,
         "poll_interval": 0.0}
@@ -30,8 +34,8 @@ FAST = {"ack_timeout": 0.2, "state_timeout": 0.2, "reset_timeout": 0.2, "reset_d
 
 def make(axes: Optional[List[Dict[str, Any]]] = None, **bus: Any) -> Tuple[Engine, Dict[int, FakeNode]]:
     axes = axes if axes is not None else [
-        {"device": 5, "node_id": 1, "position_factor": 1000},
-        {"device": 5, "node_id": 2, "position_factor": 1000},
+        {"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR},
+        {"device": 5, "node_id": 2, "position_factor": 1000, "increments_per_revolution": IPR},
     ]
     t = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant", **bus}},
                                 "axis": axes})
@@ -116,19 +120,21 @@ def test_s81_checks_the_selected_length() -> None:
 # --- enable, disable, reset ----------------------------------------------------------
 
 
-def test_first_enable_resets_the_node_writes_parameters_then_enables() -> None:
-    engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 1000,
+def test_enable_after_a_power_cycle_resets_the_node_writes_parameters_then_enables() -> None:
+    engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR,
                            "parameters": {"velocity": 2.0, "acceleration": 30.0}}])
     node = nodes[1]
     ok(engine, "1S05=2.5")  # stored and written at once: 2500 inc/s
-    node.values[(0x6081, 0)] = 1  # the drive "forgot" it (power cycle)
+    node.values[(0x6081, 0)] = 1  # the drive "forgot" it: evidence of a power cycle
     node.log.clear()
     ok(engine, "1S04=1")
-    assert node.resets == 1  # NMT reset node (spec: "on enable after power cycle")
+    assert node.resets == 1  # NMT reset node (spec 04: "If PowerCycle then NodeReset")
     assert downloads(node, 0x6081) == [(0x6081, 0, 2500)]
     assert downloads(node, 0x6083) == [(0x6083, 0, 30000)]
     assert downloads(node, 0x6084) == [(0x6084, 0, 30000)]  # 06 also sets deceleration
-    assert controlwords(node) == [0x06, 0x07, 0x0F]  # CiA 402: shutdown, switch on, enable
+    # CiA 402: shutdown, switch on, enable operation, each with halt (bit 8) set,
+    # so the drive arrives halted (motion rule 2)
+    assert controlwords(node) == [0x106, 0x107, 0x10F]
     assert decode_state(node.statusword) is State.OPERATION_ENABLED
     assert ok(engine, "1R04") == "1"
     node.log.clear()
@@ -136,11 +142,13 @@ def test_first_enable_resets_the_node_writes_parameters_then_enables() -> None:
     assert node.resets == 1 and controlwords(node) == []
 
 
-def test_disable_is_shutdown_and_idempotent() -> None:
+def test_disable_halts_then_disables_operation_then_shuts_down() -> None:
+    # Motion rule 1: at rest first (halt, sw bit 10), then Disable Operation (07h,
+    # which ramps on an EPOS4: 605Ch = 1), then Shutdown (06h, no ramp: 605Bh = 0).
     engine, nodes = make()
     node = enabled(engine, nodes)
     ok(engine, "1S04=0")
-    assert controlwords(node) == [0x06]
+    assert controlwords(node) == [0x10F, 0x07, 0x06]
     assert ok(engine, "1R04") == "0"
     node.log.clear()
     ok(engine, "1S04=0")
@@ -152,7 +160,7 @@ def test_enable_leaves_quick_stop_first_and_refuses_a_fault() -> None:
     node = enabled(engine, nodes)
     node.state = "QS"
     ok(engine, "1S04=1")
-    assert controlwords(node) == [0x00, 0x06, 0x07, 0x0F]
+    assert controlwords(node) == [0x100, 0x106, 0x107, 0x10F]
     node.inject_fault()
     assert ask(engine, "1S04=1").status is Status.NAK
 
@@ -182,14 +190,21 @@ def test_fault_reset_leaves_a_healthy_drive_alone() -> None:
     assert ok(engine, "1R04") == "1"
 
 
-def test_reset_node_16_is_nmt_only_and_rearms_the_power_cycle_path() -> None:
-    engine, nodes = make()
-    node = enabled(engine, nodes)
-    assert node.resets == 1  # the first enable
-    ok(engine, "1S16=1")
-    assert node.resets == 2 and [e for e in node.log if e[0] == "download"] == []
+def test_reset_node_16_brings_the_axis_to_rest_first_and_the_next_enable_restores() -> None:
+    engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 1000,
+                           "increments_per_revolution": IPR, "parameters": {"velocity": 2.0}}])
+    node = nodes[1]
+    node.values[(0x6081, 0)] = 2000  # the drive holds the table's value: no reset
     ok(engine, "1S04=1")
-    assert node.resets == 3  # the enable after it resets and writes the parameters again
+    assert node.resets == 0  # a bridge start is not a power cycle
+    node.log.clear()
+    ok(engine, "1S16=1")  # the client asked for exactly this (motion rule 1)
+    assert node.resets == 1
+    assert controlwords(node) == [0x10F]  # halt, at rest, then the NMT reset
+    node.log.clear()
+    ok(engine, "1S04=1")
+    assert node.resets == 1  # the node was just reset: the parameters go back, no reset
+    assert downloads(node, 0x6081) == [(0x6081, 0, 2000)]
 
 
 # --- moves --------------------------------------------------------------------------
@@ -201,8 +216,10 @@ def test_absolute_move_with_set_point_handshake() -> None:
     ok(engine, "1S02=12.5")
     assert downloads(node, 0x607A) == [(0x607A, 0, 12500)]
     ok(engine, "1S00=1")
-    # bit 4 low (2Fh = enable + change set immediately), rising (3Fh), released (2Fh)
-    assert controlwords(node) == [0x2F, 0x3F, 0x2F]
+    # bit 4 low with halt as the enable left it (12Fh = enable + change set
+    # immediately + halt), rising with halt released in the same write (3Fh),
+    # bit 4 low again (2Fh)
+    assert controlwords(node) == [0x12F, 0x3F, 0x2F]
     assert ok(engine, "1R82") == "1"
     assert ok(engine, "1R12") == "12.5"
     assert ok(engine, "1R86") == "1"
@@ -216,7 +233,7 @@ def test_relative_move_uses_bit_6_and_no_offset() -> None:
     node.log.clear()
     ok(engine, "1S00=2")
     assert downloads(node, 0x607A) == [(0x607A, 0, -1500)]
-    assert controlwords(node) == [0x6F, 0x7F, 0x6F]
+    assert controlwords(node) == [0x16F, 0x7F, 0x6F]
 
 
 def test_offset_and_inversion_on_target_and_position() -> None:
@@ -262,18 +279,20 @@ def test_velocity_move_stop_and_82_in_velocity_mode() -> None:
     node.log.clear()
     ok(engine, "1S00=8")
     assert controlwords(node) == [0x10F]  # halt
+    assert downloads(node, 0x60FF) == [(0x60FF, 0, 0)]  # and no velocity left to resume
     assert ok(engine, "1R82") == "1"
     assert ok(engine, "1R04") == "1"  # halt keeps the drive enabled
 
 
-def test_next_move_after_stop_releases_halt_only_after_the_set_point() -> None:
+def test_next_move_after_stop_releases_halt_with_its_own_set_point() -> None:
     engine, nodes = make()
     node = enabled(engine, nodes)
     ok(engine, "1S02=1")
     ok(engine, "1S00=8")
     node.log.clear()
     ok(engine, "1S00=1")
-    assert controlwords(node) == [0x12F, 0x13F, 0x2F]
+    # halt stays set while the target is written; the edge of bit 4 releases it
+    assert controlwords(node) == [0x12F, 0x3F, 0x2F]
 
 
 def test_homing_mode_6_and_bit_4() -> None:
@@ -282,7 +301,9 @@ def test_homing_mode_6_and_bit_4() -> None:
     node.values[(0x6064, 0)] = 777
     ok(engine, "1S00=9")
     assert downloads(node, 0x6060) == [(0x6060, 0, 6)]
-    assert controlwords(node) == [0x0F, 0x1F]
+    # a mode change halts first (rule 2); bit 4 low with halt, then the start edge
+    # with halt released; bit 4 stays high (falling would interrupt the homing)
+    assert controlwords(node) == [0x10F, 0x10F, 0x1F]
     assert ok(engine, "1R12") == "0" and ok(engine, "1R82") == "1"
     assert ok(engine, "1R15") == "6"
 
@@ -337,7 +358,7 @@ def test_unacknowledged_set_point_is_nak_within_the_bound() -> None:
     assert ask(engine, "1S00=1").status is Status.NAK
     assert time.monotonic() - start < 1.0  # ack_timeout is 0.2 s here
     assert ok(engine, "1R86") == "0"  # never accepted
-    assert not engine.axes[1].power_cycled  # it answered: no reason to reset it on enable
+    assert engine.axes[1].drive.power_cycle_evidence is None  # type: ignore[union-attr]
 
 
 def test_slave_axis_follows_with_its_direction() -> None:
@@ -396,7 +417,8 @@ def test_nanotec_position_reads_6062() -> None:
 
 def test_max_velocity_26_is_internal_for_technosoft() -> None:
     engine, nodes = make([{"device": 2, "node_id": 1, "position_factor": 10},
-                          {"device": 5, "node_id": 2, "position_factor": 10}])
+                          {"device": 5, "node_id": 2, "position_factor": 10,
+                           "increments_per_revolution": IPR}])
     ok(engine, "1S26=5")
     ok(engine, "2S26=5")
     assert downloads(nodes[1]) == [] and downloads(nodes[2]) == [(0x607F, 0, 50)]
@@ -405,7 +427,7 @@ def test_max_velocity_26_is_internal_for_technosoft() -> None:
 
 def test_parameters_85_write_all() -> None:
     engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 10,
-                           "parameters": {"max_velocity": 3, "homing_mode": 35,
+                           "increments_per_revolution": IPR, "parameters": {"max_velocity": 3, "homing_mode": 35,
                                           "quickstop_accel": 7}}])
     ok(engine, "1S85=1")
     assert sorted(downloads(nodes[1])) == [(0x607F, 0, 30), (0x6085, 0, 70), (0x6098, 0, 35)]
@@ -447,8 +469,12 @@ def test_internal_parameters_and_globals() -> None:
 
 
 def test_detailed_error_register() -> None:
-    assert detailed_error_from_code(0x8A89, 0x2) == 1 << 6  # positive limit switch
-    assert detailed_error_from_code(0x8A88, 0) == 1 << 7
+    # EPOS4 codes (EPOS4 Firmware Specification error table) -> spec 4.b bits
+    assert detailed_error_from_code(0x8A81, 0x2) == 1 << 6  # positive limit switch
+    assert detailed_error_from_code(0x8A80, 0x1) == 1 << 7  # negative limit switch
+    assert detailed_error_from_code(0x8A88, 0) == 1 << 15  # STO, not a limit switch
+    assert detailed_error_from_code(0x8A82, 0, 8) == 1 << 8  # software limit, positive side
+    assert detailed_error_from_code(0x8A82, 0, 9) == 1 << 9
     assert detailed_error_from_code(0x2320, 0) == 1 << 1  # short circuit
     assert detailed_error_from_code(0x3210, 0) == 1 << 12  # over-voltage
     assert detailed_error_from_code(0x3220, 0) == 1 << 13  # under-voltage
@@ -472,15 +498,26 @@ def test_absent_node_answers_nak(line: str) -> None:
     assert time.monotonic() - start < 1.0
 
 
-def test_node_that_went_away_gets_the_power_cycle_path_again() -> None:
+def test_a_node_that_was_silent_once_is_not_reset_by_the_next_enable() -> None:
+    # Finding 1 of issue 10: a timeout is not evidence of a power cycle.
     engine, nodes = make()
     node = enabled(engine, nodes)
-    assert node.resets == 1
     node.absent = True
     assert ask(engine, "1R10").status is Status.NAK
     node.absent = False
+    ok(engine, "1S04=0")
     ok(engine, "1S04=1")
-    assert node.resets == 2
+    assert node.resets == 0
+
+
+def test_a_drive_that_fell_back_to_switch_on_disabled_is_restored() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    node.power_cycle()  # behind the bridge's back: SWITCH ON DISABLED, defaults
+    node.resets = 0
+    assert ok(engine, "1R04") == "0"  # a poll sees the fall back: evidence (rule 3)
+    ok(engine, "1S04=1")
+    assert node.resets == 1
 
 
 # --- state machine helpers -----------------------------------------------------------------
@@ -665,7 +702,7 @@ def test_failed_state_file_write_is_still_ack(tmp_path: Any) -> None:
     blocker = tmp_path / "gone"
     t = AxisTable.from_mapping({"bridge": {**FAST, "state_file": str(blocker / "s.json")},
                                 "bus": {"can1": {"backend": "instant"}},
-                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000}]})
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
     engine = build_engine(t)
     blocker.write_text("x")  # after start: the directory cannot be created
     assert run_async(engine, "1S05=3").status is Status.ACK  # drive parameter (6081h)
@@ -690,7 +727,7 @@ def test_a_stuck_state_file_never_stalls_the_bus(tmp_path: Any, monkeypatch: Any
     path = tmp_path / "s.json"
     t = AxisTable.from_mapping({"bridge": {**FAST, "state_file": str(path)},
                                 "bus": {"can1": {"backend": "instant"}},
-                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000}]})
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
     engine = build_engine(t)
     start = time.monotonic()
     assert run_async(engine, "1S05=3").status is Status.ACK  # 6081h, then the arrays
@@ -720,7 +757,7 @@ def test_move_nak_comes_within_one_ack_timeout() -> None:
             return sw | 0x1000 if now[0] < self.ack_high_until else sw
 
     t = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant"}},
-                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000}]})
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
     engine = build_engine(t, clock=lambda: now[0], sleep=sleep)
     node = LateNode(1)
     engine.axes[1].port.node = node  # type: ignore[union-attr]
@@ -741,7 +778,9 @@ def test_82_reads_the_drive_mode_not_a_remembered_one() -> None:
     ok(engine, "1S80=0x60600001")
     ok(engine, "1S81=3")  # profile velocity, behind the bridge's back
     ok(engine, "1S80=0x60FF0004")
-    ok(engine, "1S81=2000")  # running at constant speed: sw bit 10 set, bit 12 clear
+    ok(engine, "1S81=2000")
+    ok(engine, "1S80=0x60400002")
+    ok(engine, "1S81=15")  # halt released: running, sw bit 10 set, bit 12 clear
     assert ok(engine, "1R82") == "0"
     ok(engine, "1S05=1")
     ok(engine, "1S00=3")  # a velocity move the bridge made ...

@@ -29,6 +29,10 @@ from tcp_bridge.server import BridgeServer, ServerOptions
 FAST = {"ack_timeout": 0.5, "state_timeout": 0.5, "reset_timeout": 0.5, "reset_delay": 0.0,
         "poll_interval": 0.0}
 
+# An EPOS4 (device 5) takes rpm: rpm = user/s * factor * 60 / IPR. With IPR 60 and
+# factor 1000 a drive value is user * 1000, the hand-worked values of spec 3.6.
+IPR = 60
+
 
 def named(text: str, status: Status) -> bytes:
     """A reply written out by hand: header text, status byte, CR, NUL padding."""
@@ -67,7 +71,7 @@ class Running:
 def make_engine(**bus: Any) -> Engine:
     table = AxisTable.from_mapping({
         "bridge": FAST, "bus": {"can1": {"backend": "instant", **bus}},
-        "axis": [{"device": 5, "node_id": n, "position_factor": 1000} for n in (1, 2, 3)]})
+        "axis": [{"device": 5, "node_id": n, "position_factor": 1000, "increments_per_revolution": IPR} for n in (1, 2, 3)]})
     return build_engine(table)
 
 
@@ -503,6 +507,7 @@ def slow(self, index, subindex):
     return upload(self, index, subindex)
 instant.FakeNode.upload = slow
 from tcp_bridge.cli import main
+
 sys.exit(main(sys.argv[1:]))
 """
 

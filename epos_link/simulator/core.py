@@ -9,6 +9,13 @@ bus with ``canopen.Network().connect(interface="virtual", channel=sim.channel)``
 
 Time: by default the drives run in real time (``time.monotonic``); pass a
 :class:`~epos_link.simulator.drive.VirtualClock` to step time in tests.
+
+NMT resets (guide 3.3.3.5, Table 3-13): a node reset or communication reset
+"while initialization is active" does not communicate and, "upon completion",
+sends a boot-up message (COB-ID 700h + node id, one byte 00h, as canopen's
+``NmtSlave`` sends it) before entering Pre-Operational. ``boot_time`` (real
+seconds, default 0: boot-up sent at once) is how long a reset drive leaves
+SDO requests on the CAN bus unanswered before its boot-up message.
 """
 from __future__ import annotations
 
@@ -48,6 +55,8 @@ class SimulatedDrive:
         self.store.set(NODE_ID_OBJECT, 0, node_id)
         self.drive = Drive(self.store, clock=clock)
         self.local_node: Optional[canopen.LocalNode] = None
+        self.booting = False  # after an NMT reset, until the boot-up message
+        self.boot_timer: Optional[threading.Timer] = None
         # The serial thread and the CAN notifier thread both reach this store.
         self.lock = threading.RLock()
         for name in ("read", "write"):
@@ -63,16 +72,33 @@ class SimulatedDrive:
             self.store.set(NODE_ID_OBJECT, 0, self.node_id)
 
 
+def _silent_while_booting(sim: SimulatedDrive) -> None:
+    """Wrap the LocalNode's SDO server (before it joins the network, which binds
+    the method) so that a booting drive leaves requests unanswered."""
+    assert sim.local_node is not None
+    serve = sim.local_node.sdo.on_request
+
+    def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
+        if not sim.booting:
+            serve(can_id, data, timestamp)
+
+    sim.local_node.sdo.on_request = on_request  # type: ignore[method-assign]
+
+
 class Epos4Simulator:
     """The device behind the serial link; thread-safe, one command at a time."""
 
     def __init__(self, node_id: int = 1, drives: Iterable[int] = (), *,
                  clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
                  gateway_timeout: float = 0.3, segment_size: int = 255,
-                 initiate_carries_data: bool = True) -> None:
+                 initiate_carries_data: bool = True, boot_time: float = 0.0) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
+        if not boot_time >= 0:
+            raise ValueError("boot time must be 0 or more seconds")
         self.node_id = node_id
+        self.boot_time = boot_time
+        self._boot_lock = threading.Lock()  # boot timers against close()
         self.clock = clock or time.monotonic
         self._lock = threading.Lock()
         self.own = SimulatedDrive(node_id, self.clock)
@@ -89,6 +115,7 @@ class Epos4Simulator:
             self.drives[nid] = SimulatedDrive(nid, self.clock)
         for nid, sim in self.drives.items():
             sim.local_node = make_local_node(sim.store, nid)
+            _silent_while_booting(sim)
             self._drive_net.add_node(sim.local_node)
         self._drive_net.subscribe(0, self._on_nmt)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
@@ -142,6 +169,7 @@ class Epos4Simulator:
             raise Abort(ErrorCode.COMMAND_UNKNOWN)  # not a CS of Table 3-14
         if node == self.node_id:
             self.own.nmt(command)
+            self._boot(self.own, command)
         elif self.gateway is not None:
             # Node 0 is "all nodes": on the bus, where this device hears it too.
             self.gateway.nmt(node, command)
@@ -155,6 +183,36 @@ class Epos4Simulator:
         for nid, sim in self.drives.items():
             if target in (0, nid):
                 sim.nmt(command)
+                self._boot(sim, command)
+
+    def _boot(self, sim: SimulatedDrive, command: int) -> None:
+        """After a reset: silent for ``boot_time``, then the boot-up message."""
+        if command not in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
+            return
+        with self._boot_lock:
+            if sim.boot_timer is not None:
+                sim.boot_timer.cancel()  # one pending boot per drive: the last reset counts
+                sim.boot_timer = None
+            if self.boot_time <= 0:
+                self._send_bootup(sim)
+                return
+            sim.booting = True
+            timer = threading.Timer(self.boot_time, lambda: self._booted(sim, timer))
+            timer.daemon = True
+            sim.boot_timer = timer
+            timer.start()
+
+    def _booted(self, sim: SimulatedDrive, timer: threading.Timer) -> None:
+        with self._boot_lock:
+            if sim.boot_timer is not timer:  # cancelled, or replaced by a later reset
+                return
+            sim.boot_timer = None
+            self._send_bootup(sim)
+
+    def _send_bootup(self, sim: SimulatedDrive) -> None:
+        sim.booting = False
+        if self._drive_net is not None:  # closed: nobody to tell
+            self._drive_net.send_message(0x700 + sim.node_id, b"\x00")
 
     # -- conveniences ----------------------------------------------------------------------
 
@@ -162,13 +220,19 @@ class Epos4Simulator:
         return self.drives[node_id].drive
 
     def close(self) -> None:
+        with self._boot_lock:
+            for sim in self.drives.values():
+                if sim.boot_timer is not None:
+                    sim.boot_timer.cancel()
+                    sim.boot_timer = None
         if self.gateway is not None:
             self.gateway.close()
             self.gateway.network.disconnect()
             self.gateway = None
-        if self._drive_net is not None:
-            self._drive_net.disconnect()
-            self._drive_net = None
+        with self._boot_lock:
+            net, self._drive_net = self._drive_net, None
+        if net is not None:
+            net.disconnect()
 
     def __enter__(self) -> "Epos4Simulator":
         return self

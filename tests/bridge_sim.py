@@ -1,0 +1,180 @@
+"""A bridge on a simulated EPOS4, served on loopback TCP, with answers that can be lost.
+
+For end-to-end tests written the way a user meets a problem: a TCP client
+talks to the bridge (``tcp_bridge.server``), which reaches the simulated EPOS4
+and the drives behind its CAN gateway through the real ``epos`` path
+(``EposClient`` over MAXON SERIAL V2, ``epos_link.connect_node``). The link
+is an in-process :class:`LossyTransport`, so a test can lose the answers to
+chosen requests after the device executed them, as a noisy cable does.
+
+These tests watch the simulated drives themselves (positions, state history,
+motion starts), so they run on the simulator only; ``tests/test_bridge_e2e.py``
+is the scenario that also runs on hardware (``EPOS_URL``, ``CAN_CHANNEL``).
+"""
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+import time
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence
+
+from epos_link.client import EposClient
+from epos_link.framing import decode_frames
+from epos_link.messages import Message, WriteObject, decode_request
+from epos_link.simulator.core import Epos4Simulator
+from epos_link.simulator.transport import SimTransport
+from tcp_bridge.axes import AxisTable, BusConfig, simulated_increments_per_revolution
+from tcp_bridge.backends.epos import EposBackend
+from tcp_bridge.engine import Engine
+from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.server import BridgeServer, ServerOptions
+
+TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,
+          "poll_interval": 0.002}
+Rule = Callable[[Message], bool]
+
+
+def controlword_write(node: int, *, bits: int = 0) -> Rule:
+    """A rule matching WriteObject of the controlword (6040h) of ``node`` with ``bits`` set."""
+    def match(message: Message) -> bool:
+        return (isinstance(message, WriteObject) and message.node == node
+                and message.index == 0x6040
+                and int.from_bytes(message.data[:2], "little") & bits == bits)
+    return match
+
+
+class LossyTransport(SimTransport):
+    """``sim://`` whose answers to chosen requests are lost after the device ran them."""
+
+    def __init__(self, simulator: Epos4Simulator) -> None:
+        super().__init__(simulator)
+        self._rule: Optional[Rule] = None
+        self._to_drop = 0
+        self.dropped: List[Message] = []
+        self.requests: List[Message] = []
+
+    def lose_answers(self, rule: Rule, count: int) -> None:
+        """The next ``count`` requests matching ``rule`` are executed, unanswered."""
+        self._rule, self._to_drop = rule, count
+
+    def write(self, data: bytes) -> None:
+        messages = [decode_request(f) for f in decode_frames(bytes(data))]
+        self.requests.extend(messages)
+        drop = (self._to_drop > 0 and self._rule is not None
+                and any(self._rule(m) for m in messages))
+        if not drop:
+            super().write(data)
+            return
+        self._to_drop -= 1
+        self.dropped.extend(messages)
+        self.simulator.receive(bytes(data))  # the device executes it; the answer is lost
+
+
+class SimBridge:
+    """Simulator + bridge server on its own event loop thread + one TCP client."""
+
+    def __init__(self, drives: Sequence[int] = (2, 3), *, gateway: int = 1,
+                 axes: Optional[List[Dict[str, Any]]] = None, timing: Optional[Dict[str, Any]] = None,
+                 client_timeout: float = 0.1) -> None:
+        self.sim = Epos4Simulator(gateway, list(drives), gateway_timeout=0.1)
+        self.transport = LossyTransport(self.sim)
+        self.client = EposClient(self.transport, gateway_node_id=gateway, timeout=client_timeout,
+                                 late_answer_timeout=client_timeout)
+        ipr = simulated_increments_per_revolution()
+        self.axes = axes if axes is not None else [
+            {"device": 5, "node_id": n, "position_factor": 1000, "increments_per_revolution": ipr}
+            for n in (gateway, *drives)]
+        self.timing = {**TIMING, **(timing or {})}
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.engine: Engine
+        self.server: BridgeServer
+        self.sock: socket.socket
+        self.start()
+
+    # -- the bridge: start, restart ------------------------------------------------------
+
+    def start(self) -> None:
+        table = AxisTable.from_mapping({"bridge": self.timing,
+                                        "bus": {"can1": {"backend": "epos"}},
+                                        "axis": self.axes})
+        backend = EposBackend(BusConfig("can1", "epos", {}), list(table.axes.values()),
+                              client=self.client)
+        nodes = {a.addr: backend.node(a.node_id) for a in table.axes.values()}
+        self.engine = Engine(table, nodes)  # the backend (and its client) outlive a restart
+        self.server = BridgeServer(self.engine, ServerOptions(ports=(0, 0)))
+        asyncio.run_coroutine_threadsafe(self.server.start(), self.loop).result(10)
+        self.sock = socket.create_connection(self.server.addresses[0], timeout=30)
+
+    def stop(self) -> None:
+        self.sock.close()
+        asyncio.run_coroutine_threadsafe(self.server.close(), self.loop).result(30)
+
+    def restart(self) -> None:
+        """The bridge process restarts; the drives keep running."""
+        self.stop()
+        self.start()
+
+    def close(self) -> None:
+        self.stop()
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+        self.client.close()
+        self.sim.close()
+
+    # -- a client's view -------------------------------------------------------------------
+
+    def ask(self, line: str) -> Reply:
+        self.sock.sendall(line.encode() + b"\r")
+        data = b""
+        while len(data) < REPLY_SIZE:
+            chunk = self.sock.recv(REPLY_SIZE - len(data))
+            assert chunk, "bridge closed the connection"
+            data += chunk
+        return decode_reply(data)
+
+    def ok(self, *lines: str) -> str:
+        value = ""
+        for line in lines:
+            reply = self.ask(line)
+            assert reply.status is Status.ACK, (line, reply)
+            value = reply.value or ""
+        return value
+
+    def poll(self, line: str, want: str, timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while self.ok(line) != want:
+            assert time.monotonic() < deadline, f"{line} never became {want}"
+            time.sleep(0.01)
+
+    # -- the drive's view ------------------------------------------------------------------
+
+    def drive(self, node: int) -> Any:
+        return self.sim.drive(node)
+
+    def now(self, node: int) -> Any:
+        """The drive of ``node`` brought up to the present (under its lock): read
+        ``.position``, ``.velocity``, ``.state`` of the result."""
+        sim = self.sim.drives[node]
+        with sim.lock:
+            sim.drive.sync()
+        return sim.drive
+
+    def position(self, node: int) -> int:
+        return int(self.now(node).position)
+
+    def velocity(self, node: int) -> int:
+        return int(self.now(node).velocity)
+
+    def wait_until(self, what: Callable[[], bool], timeout: float = 10.0, why: str = "") -> None:
+        deadline = time.monotonic() + timeout
+        while not what():
+            assert time.monotonic() < deadline, why or "condition never became true"
+            time.sleep(0.01)
+
+
+def opcodes(messages: Iterable[Message]) -> List[str]:
+    return [type(m).__name__ for m in messages]

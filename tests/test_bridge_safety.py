@@ -1,0 +1,212 @@
+"""Issue 10: the bridge is safe on a real axis. Each finding, the way a user meets it.
+
+Every test drives the bridge over TCP (``tests/bridge_sim.py``: PSI requests,
+the ``epos`` backend, MAXON SERIAL V2 to the simulated EPOS4 and the drives
+behind its gateway) and then looks at the simulated drive itself: its
+position, velocity and state history. So each proves that the drive never
+moved when it should not have, and moved exactly once when it should. The
+motion rules under test are in ``tcp_bridge/motion.py``.
+"""
+from __future__ import annotations
+
+import time
+from typing import Iterator, List
+
+import pytest
+
+from epos_link.cia402 import State
+from epos_link.messages import ReadObject, WriteObject
+from tcp_bridge.protocol import Status
+from tests.bridge_sim import SimBridge, controlword_write, opcodes
+
+FACTOR = 1000  # user units are mm; the drives count increments
+
+
+@pytest.fixture
+def bridge() -> Iterator[SimBridge]:
+    b = SimBridge()
+    yield b
+    b.close()
+
+
+def power_ups(b: SimBridge, node: int) -> int:
+    """How often the drive went through transition 0 (an NMT reset or power-up)."""
+    return sum(1 for _, number, _ in b.drive(node).history if number == 0)
+
+
+def transitions_since(b: SimBridge, node: int, t: float) -> List[int]:
+    return [number for when, number, _ in b.drive(node).history if when >= t]
+
+
+def run_velocity_move(b: SimBridge, axis: int, speed: str = "5") -> None:
+    b.ok(f"{axis}S04=1", f"{axis}S05={speed}", f"{axis}S06=50", f"{axis}S00=3")
+    b.wait_until(lambda: b.velocity(axis) > 0, why="the velocity move never started")
+
+
+# --- finding 1: enable resets a moving drive ---------------------------------------------
+
+
+def test_a_lost_answer_never_makes_enable_reset_a_moving_drive(bridge: SimBridge) -> None:
+    b = bridge
+    run_velocity_move(b, 2)
+    resets = power_ups(b, 2)
+    # One poll's answer is lost twice (the client's retry too): the poll is NAK ...
+    b.transport.lose_answers(lambda m: isinstance(m, ReadObject) and m.node == 2, 2)
+    assert b.ask("2R10").status is Status.NAK
+    # ... and the routine enable that follows leaves the moving drive alone.
+    b.ok("2S04=1")
+    time.sleep(0.1)
+    assert power_ups(b, 2) == resets
+    assert b.now(2).state is State.OPERATION_ENABLED and b.velocity(2) > 0
+
+
+def test_a_bridge_restart_never_resets_a_moving_drive(bridge: SimBridge) -> None:
+    b = bridge
+    run_velocity_move(b, 2)
+    resets = power_ups(b, 2)
+    b.restart()
+    b.ok("2S04=1")  # what a client sends after it reconnects
+    time.sleep(0.1)
+    assert power_ups(b, 2) == resets
+    assert b.velocity(2) > 0
+
+
+# --- finding 2: a stopped velocity move restarts by itself ----------------------------------
+
+
+@pytest.mark.parametrize("then", [["2S04=0", "2S04=1"], ["2S07=3"], ["2S07=1", "2S07=3"],
+                                  ["2S04=0", "2S04=1", "2S07=3"]])
+def test_a_stopped_velocity_move_stays_stopped(bridge: SimBridge, then: List[str]) -> None:
+    b = bridge
+    run_velocity_move(b, 2)
+    b.ok("2S00=8")
+    b.poll("2R82", "1")
+    b.wait_until(lambda: b.velocity(2) == 0)
+    b.ok(*then)
+    stopped = b.position(2)
+    time.sleep(0.3)
+    assert b.velocity(2) == 0 and b.position(2) == stopped, "the axis moved without a move command"
+    b.ok("2S00=3")  # the next move command does move it
+    b.wait_until(lambda: b.velocity(2) > 0)
+
+
+# --- finding 3: disable cuts the power of a moving axis ----------------------------------------
+
+
+def test_disable_during_a_move_brings_the_axis_to_rest_first(bridge: SimBridge) -> None:
+    b = bridge
+    run_velocity_move(b, 2, speed="20")
+    t0 = b.now(2).now
+    b.ok("2S04=0")
+    assert b.now(2).state is State.READY_TO_SWITCH_ON
+    steps = transitions_since(b, 2, t0)
+    # CiA 402: 5 = disable operation (OE -> SO), 6 = shutdown (SO -> RTSO). Never 8,
+    # shutdown straight from OPERATION ENABLED, which cuts an EPOS4's drive function.
+    assert 8 not in steps and steps[:2] == [5, 6], steps
+    assert b.velocity(2) == 0
+
+
+# --- finding 5: a move that started is answered NAK ---------------------------------------------
+
+
+@pytest.mark.parametrize("how,target,expected", [("1", "5", 5.0), ("2", "2", 2.0)])
+def test_a_move_whose_start_answer_is_lost_is_ack_and_moves_once(
+        bridge: SimBridge, how: str, target: str, expected: float) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S05=20", "2S06=200", "2S86=0", f"2S02={target}")
+    start = b.position(2) / FACTOR
+    # The write that starts the move (controlword bit 4) and the client's retry
+    # of it are executed by the drive, but both answers are lost.
+    b.transport.lose_answers(controlword_write(2, bits=0x10), 2)
+    assert b.ask(f"2S00={how}").status is Status.ACK
+    assert len(b.transport.dropped) == 2
+    assert b.ok("2R86") == "1"
+    b.poll("2R82", "1")
+    time.sleep(0.1)
+    assert b.position(2) / FACTOR == pytest.approx(start + expected if how == "2" else expected)
+
+
+def test_a_move_that_could_not_start_is_nak_and_nothing_moves(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S05=20", "2S06=200", "2S02=5")
+    # The target write is lost for good (the drive never answers it): nothing started.
+    b.transport.lose_answers(lambda m: isinstance(m, WriteObject) and m.index == 0x607A, 100)
+    assert b.ask("2S00=1").status is Status.NAK
+    assert b.ok("2R86") == "0"
+    time.sleep(0.2)
+    assert b.position(2) == 0
+
+
+# --- finding 6: a real power loss between polls goes unnoticed -----------------------------------
+
+
+def test_a_power_cycle_between_polls_makes_enable_write_the_parameters_back(
+        bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S05=7", "2S06=70")
+    held = b.sim.drives[2].store.get_int(0x6081)
+    b.sim.drives[2].nmt(0x81)  # power lost and back: saved parameters, SWITCH ON DISABLED
+    assert b.sim.drives[2].store.get_int(0x6081) != held
+    b.ok("2S04=1")  # no poll in between
+    assert b.sim.drives[2].store.get_int(0x6081) == held
+    assert b.ok("2R04") == "1"
+
+
+# --- finding 7: every read is a segmented read ------------------------------------------------
+
+
+@pytest.mark.parametrize("axis", [1, 2])
+def test_a_status_poll_is_one_read_object(bridge: SimBridge, axis: int) -> None:
+    b = bridge
+    b.ok(f"{axis}R10")  # the first poll may read more (e.g. the node id)
+    b.transport.requests.clear()
+    b.ok(f"{axis}R10", f"{axis}R12", f"{axis}R82")
+    assert set(opcodes(b.transport.requests)) == {"ReadObject"}
+
+
+# --- finding 8: wrong error codes and bits --------------------------------------------------------
+
+
+def test_a_limit_switch_fault_is_an_end_switch_hit(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1")
+    b.drive(2).inject_fault("limit_positive")
+    assert b.ok("2R83") == "1"
+    assert int(b.ok("2R11")) == 1 << 6  # spec 4.b bit 6: positive limit switch
+
+
+def test_velocity_limiting_is_not_an_end_switch_hit(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S26=2")  # max velocity below the move's: the drive limits it (sw bit 11)
+    run_velocity_move(b, 2, speed="5")
+    b.wait_until(lambda: int(b.ok("2R10")) & (1 << 11) != 0, why="no internal limit shown")
+    assert b.ok("2R83") == "0"
+
+
+def test_r14_is_in_user_units(bridge: SimBridge) -> None:
+    b = bridge
+    run_velocity_move(b, 2, speed="5")
+    b.poll("2R82", "0")
+    b.wait_until(lambda: abs(float(b.ok("2R14")) - 5.0) < 0.1, why="R14 is not 5 mm/s")
+
+
+# --- finding 9: slave axes are not synchronised ----------------------------------------------------
+
+
+def test_a_slave_moves_in_step_with_its_master(bridge: SimBridge) -> None:
+    b = bridge
+    travel = 10.0
+    b.ok("3S04=1", "3S05=1", "3S06=5")  # the slave's own, much slower profile
+    b.ok("2S04=1", "2S05=20", "2S06=100", "2S29=3", "2S30=-1", f"2S02={travel}", "2S00=1")
+    worst = 0.0
+    deadline = time.monotonic() + 10
+    while True:
+        master, slave = b.position(2) / FACTOR, b.position(3) / FACTOR
+        worst = max(worst, abs(master + slave))  # mirrored by S30=-1
+        if master == travel and b.velocity(2) == 0:
+            break
+        assert time.monotonic() < deadline, "the master never arrived"
+        time.sleep(0.002)
+    b.wait_until(lambda: b.velocity(3) == 0)
+    assert b.position(3) / FACTOR == -travel
+    assert worst <= 0.01 * travel, f"slave and master apart by {worst} mm"
