@@ -119,3 +119,15 @@ def test_unplug_and_replug_on_standard_input(
     assert re.fullmatch(r"replugged usb://\?serial=SIM00001 at /dev/bus/usb/001/\d{3}", read_line(proc))
     out = wrapped(env, "read", "usb://", "0", "0x1008", "0", "--type", "str")
     assert out.returncode == 0 and '"EPOS4"' in out.stdout, out.stderr
+
+
+def test_sigusr1_unplugs_and_sigusr2_replugs(
+        served: tuple[subprocess.Popen[str], dict[str, str]]) -> None:
+    proc, env = served
+    read_line(proc)  # the drives line
+    proc.send_signal(signal.SIGUSR1)
+    assert read_line(proc) == "unplugged usb://?serial=SIM00001"
+    proc.send_signal(signal.SIGUSR2)
+    assert read_line(proc).startswith("replugged usb://?serial=SIM00001 at /dev/bus/usb/001/")
+    out = wrapped(env, "read", "usb://", "0", "0x1000", "0", "--type", "u32")
+    assert out.returncode == 0, out.stderr

@@ -135,19 +135,38 @@ def test_a_read_waits_for_the_answer_then_reaps_it(setup: Any) -> None:
     assert actual == 6
 
 
-def test_a_held_reap_answers_eagain_when_its_timer_fires(setup: Any) -> None:
+def reading(d: Dispatcher) -> Client:
+    """A client with an IN URB in flight (a read waiting for the device)."""
+    arg, _ = urb_arg(m.EP_IN, b"", 64)
+    client = Client(m.USBDEVFS_SUBMITURB, arg)
+    d.handle(client)
+    assert client.completions == [(0, 0)]
+    return client
+
+
+def test_with_nothing_in_flight_a_reap_answers_eagain_at_once(setup: Any) -> None:
     d, unit, timers, out = setup
-    client = Client(m.USBDEVFS_GET_CAPABILITIES, Data(b"", children={0: Data(bytes(4))}))
+    arg, _ = urb_arg(m.EP_OUT, b"x", 1)
+    client = Client(m.USBDEVFS_SUBMITURB, arg)
     d.handle(client)
     reap(d, client)
+    assert client.completions == [(0, 0)]                # the OUT URB
+    reap(d, client)
+    assert client.completions == [(-1, errno.EAGAIN)] and not timers.pending
+
+
+def test_a_held_reap_answers_eagain_when_its_timer_fires(setup: Any) -> None:
+    d, unit, timers, out = setup
+    client = reading(d)
+    reap(d, client)
+    assert client.completions == []
     timers.fire_all()
     assert client.completions == [(-1, errno.EAGAIN)]
 
 
 def test_a_held_reap_answers_enodev_when_the_cable_is_pulled(setup: Any) -> None:
     d, unit, timers, out = setup
-    client = Client(m.USBDEVFS_CLAIMINTERFACE, Data(b""))
-    d.handle(client)
+    client = reading(d)
     reap(d, client)
     unit.unplug()
     d.unplugged(unit)
@@ -199,9 +218,9 @@ def test_a_node_of_an_unplugged_unit_answers_enodev(setup: Any) -> None:
 
 def test_a_vanished_client_frees_its_connection_and_timer(setup: Any) -> None:
     d, unit, timers, out = setup
-    client = Client(m.USBDEVFS_CLAIMINTERFACE, Data(b""))
-    d.handle(client)
+    client = reading(d)
     reap(d, client)
+    assert timers.pending
     client.connected = False
     d.vanished(client)
     assert not timers.pending and unit.connections == [] and d.conns == {}

@@ -10,11 +10,13 @@ does not import gi: the timer functions are passed in, so the tests run it
 with fakes under any Python. It runs under the system Python in
 :mod:`.usb_testbed` (stdlib only, sibling imports; see there why).
 
-A REAPURBNDELAY that finds nothing is held for up to :data:`REAP_HOLD_MS`, or
+A REAPURBNDELAY that finds nothing while the connection has a URB in flight
+(a read waiting for the device) is held for up to :data:`REAP_HOLD_MS`, or
 until a URB of that connection completes, before it answers EAGAIN. An
 emulated node always polls ready, so without the hold libusb would spin on
 the ioctl socket while it waits for an answer; with it, a client's timeout
-ends at most that much later.
+ends at most that much later. With nothing in flight EAGAIN comes at once:
+libusb reaps until EAGAIN after every transfer.
 """
 from __future__ import annotations
 
@@ -181,7 +183,9 @@ class Dispatcher:
     def _reap(self, client: Any, conn: Connection, arg: Any, hold: bool) -> Optional[tuple[int, int]]:
         urb = conn.unit.reap(conn)
         if urb is None:
-            if not hold:
+            if not hold or not conn.in_flight:
+                # Nothing can complete (libusb reaps until EAGAIN after every
+                # transfer): holding would only delay it.
                 return -1, errno.EAGAIN
             key = id(client)
             timer = self._timeout_add(REAP_HOLD_MS, self._hold_expired, key)

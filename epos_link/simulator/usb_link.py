@@ -21,12 +21,14 @@ does. Every wait on the helper is bounded.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import queue
 import select
 import shutil
 import subprocess
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Optional, Sequence
@@ -35,12 +37,14 @@ from ..capture import CaptureWriter
 from ..errors import TransportError
 from .link import Device, LinkOptions, LinkServer
 
+log = logging.getLogger(__name__)
 HELPER = Path(__file__).with_name("usb_testbed.py")
 WRAPPER = "umockdev-wrapper"
 SYSTEM_PYTHON = "/usr/bin/python3"
 START_TIMEOUT = 30.0    # the helper imports gi and builds the testbed
 COMMAND_TIMEOUT = 10.0  # plug/unplug acknowledgement
 MAX_QUEUED_CHUNKS = 1024
+MAX_EVENTS = 256
 _GI_CHECK = ("import gi; gi.require_version('UMockdev', '1.0'); "
              "from gi.repository import UMockdev; UMockdev.IoctlBase")
 INSTALL_HINT = "Debian/Ubuntu: sudo apt install umockdev gir1.2-umockdev-1.0 python3-gi"
@@ -110,8 +114,9 @@ class UsbLink:
             raise ValueError("serial numbers must differ")
         locked: Any = _LockedTrace(trace) if trace is not None else None
         self.servers = [LinkServer(d, options, locked) for d in devices]
-        self._events: "queue.Queue[dict[str, Any]]" = queue.Queue()
+        self._events: "queue.Queue[dict[str, Any]]" = queue.Queue(MAX_EVENTS)
         self._send_lock = threading.Lock()
+        self._command_lock = threading.Lock()  # one plug/unplug/stats exchange at a time
         self._threads: list[threading.Thread] = []
         self._closed = threading.Event()
         config = json.dumps({"serials": list(serials)})
@@ -185,28 +190,30 @@ class UsbLink:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             try:
-                message = json.loads(line)
-            except ValueError:
-                continue
-            event = message.get("event")
-            if event == "out":
-                unit = self.units[message["unit"]]
-                try:
-                    unit.chunks.put_nowait(bytes.fromhex(message["data"]))
-                except queue.Full:
-                    pass  # bounded: a device side that stopped reading loses requests
-            elif event in ("plugged", "unplugged"):
-                unit = self.units[message["unit"]]
-                unit.plugged = message["plugged"]
-                unit.address, unit.devnode = message["address"], message["devnode"]
-                unit.generation += 1
-                _put_latest(unit.chunks, None)  # wakes the unit's loop: it ends and resets
-                self._events.put(message)
-            else:
-                self._events.put(message)
+                self._dispatch(json.loads(line))
+            except (ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:
+                log.warning("bad line from the USB testbed helper: %s (%r)", exc, line[:200])
         for unit in self.units:  # helper ended: stop every unit's loop
             _put_latest(unit.chunks, None)
         self._closed.set()
+
+    def _dispatch(self, message: dict[str, Any]) -> None:
+        event = message.get("event")
+        if event == "out":
+            unit = self.units[message["unit"]]
+            try:
+                unit.chunks.put_nowait(bytes.fromhex(message["data"]))
+            except queue.Full:
+                pass  # bounded: a device side that stopped reading loses requests
+        elif event in ("plugged", "unplugged"):
+            unit = self.units[message["unit"]]
+            unit.plugged = message["plugged"]
+            unit.address, unit.devnode = message["address"], message["devnode"]
+            unit.generation += 1
+            _put_latest(unit.chunks, None)  # wakes the unit's loop: it ends and resets
+            _put_latest(self._events, message)
+        else:
+            _put_latest(self._events, message)
 
     def _serve(self, unit: UsbUnit, server: LinkServer) -> None:
         generation = unit.generation
@@ -234,19 +241,33 @@ class UsbLink:
             except TransportError:
                 return
 
+    def _exchange(self, want: str, **command: Any) -> dict[str, Any]:
+        """Send one command to the helper and wait (bounded) for its ``want`` event."""
+        with self._command_lock:
+            while True:  # events nobody waited for are stale now
+                try:
+                    self._events.get_nowait()
+                except queue.Empty:
+                    break
+            self._send(**command)
+            deadline = time.monotonic() + COMMAND_TIMEOUT
+            while True:
+                left = deadline - time.monotonic()
+                try:
+                    message = self._events.get(timeout=max(left, 0.0))
+                except queue.Empty:
+                    raise TransportError(f"the USB testbed did not answer {command}") from None
+                if message.get("event") == want and message.get("unit", command.get("unit")) == \
+                        command.get("unit"):
+                    return message
+                if message.get("event") == "error":
+                    raise TransportError(f"USB testbed: {message.get('message')}")
+
     def _change(self, index: int, op: str, want: str) -> UsbUnit:
         if not 0 <= index < len(self.units):
             raise ValueError(f"no USB unit {index} (there are {len(self.units)})")
-        self._send(op=op, unit=index)
-        try:
-            while True:
-                message = self._events.get(timeout=COMMAND_TIMEOUT)
-                if message.get("event") == want and message.get("unit") == index:
-                    return self.units[index]
-                if message.get("event") == "error":
-                    raise TransportError(f"USB testbed: {message.get('message')}")
-        except queue.Empty:
-            raise TransportError(f"the USB testbed did not confirm {op} of unit {index}") from None
+        self._exchange(want, op=op, unit=index)
+        return self.units[index]
 
     def unplug(self, index: int = 0) -> UsbUnit:
         """Pull the cable of unit ``index``; returns once the device is gone."""
@@ -258,14 +279,7 @@ class UsbLink:
 
     def stats(self) -> dict[str, Any]:
         """Counts of the ioctls the testbed answered, by name (``DISCARDURB``, ...)."""
-        self._send(op="stats")
-        try:
-            while True:
-                message = self._events.get(timeout=COMMAND_TIMEOUT)
-                if message.get("event") == "stats":
-                    return dict(message)
-        except queue.Empty:
-            raise TransportError("the USB testbed did not report its counts") from None
+        return self._exchange("stats", op="stats")
 
     def _stop_helper(self) -> None:
         self._closed.set()
@@ -292,7 +306,7 @@ class UsbLink:
             t.join(2)
 
 
-def _put_latest(q: "queue.Queue[Optional[bytes]]", item: Optional[bytes]) -> None:
+def _put_latest(q: "queue.Queue[Any]", item: Any) -> None:
     """Put ``item`` even into a full queue (dropping the oldest entry)."""
     while True:
         try:
