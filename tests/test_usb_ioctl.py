@@ -92,7 +92,7 @@ def setup() -> tuple[Dispatcher, Unit, Timers, list[tuple[int, bytes]]]:
     out: list[tuple[int, bytes]] = []
     d = Dispatcher([unit], on_out=lambda i, b: out.append((i, b)), timeout_add=timers.add,
                    source_remove=timers.remove)
-    d.nodes[NODE] = (0, 0)
+    d.plug(0, NODE)
     return d, unit, timers, out
 
 
@@ -168,8 +168,7 @@ def test_a_held_reap_answers_enodev_when_the_cable_is_pulled(setup: Any) -> None
     d, unit, timers, out = setup
     client = reading(d)
     reap(d, client)
-    unit.unplug()
-    d.unplugged(unit)
+    d.unplug(0)
     assert client.completions == [(-1, errno.ENODEV)] and not timers.pending
 
 
@@ -207,8 +206,8 @@ def test_a_node_of_an_unplugged_unit_answers_enodev(setup: Any) -> None:
     d, unit, timers, out = setup
     old = Client(m.USBDEVFS_CLAIMINTERFACE, Data(b""))
     d.handle(old)
-    unit.unplug()
-    unit.replug()
+    d.unplug(0)
+    d.plug(0, "/dev/bus/usb/001/003")
     d.handle(old)
     assert old.completions == [(0, 0), (-1, errno.ENODEV)]
     stranger = Client(m.USBDEVFS_CLAIMINTERFACE, Data(b""), devnode="/dev/bus/usb/001/099")
@@ -224,3 +223,26 @@ def test_a_vanished_client_frees_its_connection_and_timer(setup: Any) -> None:
     client.connected = False
     d.vanished(client)
     assert not timers.pending and unit.connections == [] and d.conns == {}
+
+
+def test_a_timer_that_fires_at_once_in_the_main_loop_thread_still_answers_the_hold() -> None:
+    """umockdev runs the handler in its own thread; the timer may fire before the
+    handler has stored the hold. It must wait for the handler, then answer EAGAIN."""
+    import threading
+
+    threads: list[threading.Thread] = []
+
+    def timeout_add(_ms: int, fn: Callable[[int], bool], key: int) -> int:
+        t = threading.Thread(target=fn, args=(key,))
+        t.start()
+        threads.append(t)
+        return len(threads)
+
+    d = Dispatcher([Unit("S1")], on_out=lambda i, b: None, timeout_add=timeout_add,
+                   source_remove=lambda _s: None)
+    d.plug(0, NODE)
+    client = reading(d)
+    reap(d, client)
+    for t in threads:
+        t.join(10)
+    assert client.completions == [(-1, errno.EAGAIN)] and d.held == {}

@@ -23,6 +23,7 @@ from __future__ import annotations
 import errno
 import struct
 import sys
+import threading
 import traceback
 from typing import Any, Callable, Optional
 
@@ -67,6 +68,9 @@ class Dispatcher:
         self.conns: dict[int, tuple[Any, Connection]] = {}
         self.held: dict[int, tuple[Any, Any, int]] = {}  # id(client) -> (client, arg, timer)
         self.counts: dict[str, int] = {}
+        # umockdev calls the ioctl handler in its own thread, while the relay and
+        # the timers run in the main loop's: every entry point takes this lock.
+        self._lock = threading.RLock()
 
     # --- completion -----------------------------------------------------------------
 
@@ -79,6 +83,10 @@ class Dispatcher:
 
     def handle(self, client: Any) -> bool:
         """The ``handle-ioctl`` handler: completes ``client``'s ioctl now or via a timer."""
+        with self._lock:
+            return self._handle_locked(client)
+
+    def _handle_locked(self, client: Any) -> bool:
         try:
             done = self._handle(client)
         except UsbError as exc:
@@ -109,6 +117,10 @@ class Dispatcher:
         return conn
 
     def vanished(self, client: Any, _pspec: Any = None) -> None:
+        with self._lock:
+            self._vanished(client)
+
+    def _vanished(self, client: Any) -> None:
         if client.get_connected():
             return
         key = id(client)
@@ -119,8 +131,29 @@ class Dispatcher:
         if known is not None:
             known[1].unit.disconnect(known[1])
 
-    def unplugged(self, unit: Unit) -> None:
-        """The unit is gone: its held reaps answer ENODEV now."""
+    def unplug(self, index: int) -> None:
+        """The cable of unit ``index`` is pulled: its node goes, its held reaps answer ENODEV."""
+        with self._lock:
+            unit = self.units[index]
+            unit.unplug()
+            for node, (i, _generation) in list(self.nodes.items()):
+                if i == index:
+                    del self.nodes[node]
+            self._unplugged(unit)
+
+    def plug(self, index: int, node: str) -> None:
+        """Unit ``index`` is (back) on the bus at device node ``node``."""
+        with self._lock:
+            unit = self.units[index]
+            if not unit.plugged:
+                unit.replug()
+            self.nodes[node] = (index, unit.generation)
+
+    def stats(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.counts)
+
+    def _unplugged(self, unit: Unit) -> None:
         for key, (client, _arg, timer) in list(self.held.items()):
             known = self.conns.get(key)
             if known is not None and known[1].unit is unit:
@@ -188,17 +221,22 @@ class Dispatcher:
                 # transfer): holding would only delay it.
                 return -1, errno.EAGAIN
             key = id(client)
-            timer = self._timeout_add(REAP_HOLD_MS, self._hold_expired, key)
-            self.held[key] = (client, arg, timer)
+            # The timer may fire in the other thread at once: it waits for our
+            # lock, then finds the hold by its id (the box is filled before).
+            box = [0]
+            box[0] = self._timeout_add(REAP_HOLD_MS, lambda _k: self._hold_expired(key, box), key)
+            self.held[key] = (client, arg, box[0])
             return None  # completed by _wake, _hold_expired or unplugged
         self._write_back(urb)
         arg.resolve(0, POINTER).set_ptr(0, urb.handle[0])  # the kernel writes the URB's address
         return 0, 0
 
-    def _hold_expired(self, key: int) -> bool:
-        held = self.held.pop(key, None)
-        if held is not None:
-            self._answer_held(held[0], held[1])
+    def _hold_expired(self, key: int, timer: list[int]) -> bool:
+        with self._lock:
+            held = self.held.get(key)
+            if held is not None and held[2] == timer[0]:  # not a newer hold of this client
+                del self.held[key]
+                self._answer_held(held[0], held[1])
         return False  # one-shot timer
 
     def _answer_held(self, client: Any, arg: Any) -> None:
@@ -225,5 +263,6 @@ class Dispatcher:
 
     def answer(self, index: int, data: bytes) -> None:
         """The simulator's answer for unit ``index``: one bulk IN transfer."""
-        self.units[index].answer(data)
-        self._wake()
+        with self._lock:
+            self.units[index].answer(data)
+            self._wake()

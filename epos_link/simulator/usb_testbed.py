@@ -29,7 +29,8 @@ What it does:
   ``{"event": "ready"|"out"|"plugged"|"unplugged"|"stats"|"error", ...}``;
 * ends when its stdin closes (the simulator is gone), removing the testbed.
 
-Everything runs in one GLib main loop (ioctls, stdin, timers): no threads.
+umockdev calls the ioctl handler in a thread of its own, while stdin and the
+timers run in the main loop: the dispatcher serialises them with one lock.
 """
 from __future__ import annotations
 
@@ -112,7 +113,7 @@ class Bus:
         self.addresses[i] = self._next_address
         self._next_address = 2 if self._next_address >= 127 else self._next_address + 1
         node = self.devnode(i)
-        self.dispatcher.nodes[node] = (i, self.units[i].generation)
+        self.dispatcher.plug(i, node)
         # Attach the handler before the node exists, so no open() can miss it
         # (libusb's own umockdev test does the same). add_from_string sends "add".
         self.testbed.attach_ioctl(node, self.handler)
@@ -124,13 +125,10 @@ class Bus:
                 "bus": BUS, "address": self.addresses[i], "devnode": self.devnode(i)}
 
     def unplug(self, i: int) -> None:
-        unit = self.units[i]
-        if not unit.plugged:
+        if not self.units[i].plugged:
             return
-        unit.unplug()  # from now on its open files answer ENODEV
-        self.dispatcher.unplugged(unit)
+        self.dispatcher.unplug(i)  # from now on its open files answer ENODEV
         node = self.devnode(i)
-        self.dispatcher.nodes.pop(node, None)
         self.testbed.remove_device(self.syspath(i))  # sends the "remove" uevent
         try:
             self.testbed.detach_ioctl(node)
@@ -142,10 +140,8 @@ class Bus:
             pass
 
     def replug(self, i: int) -> None:
-        unit = self.units[i]
-        if unit.plugged:
+        if self.units[i].plugged:
             return
-        unit.replug()
         self._add(i)
 
     def command(self, message: dict[str, Any]) -> None:
@@ -162,7 +158,7 @@ class Bus:
             self.replug(i)
             self.relay.send(event="plugged", **self.info(i))
         elif op == "stats":
-            self.relay.send(event="stats", counts=dict(self.dispatcher.counts),
+            self.relay.send(event="stats", counts=self.dispatcher.stats(),
                             dropped_in=[u.dropped_in for u in self.units])
         else:
             raise ValueError(f"unknown op {op!r}")
