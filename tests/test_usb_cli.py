@@ -3,6 +3,7 @@
 with a line on its standard input."""
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import re
@@ -65,10 +66,16 @@ def read_line(proc: subprocess.Popen[str]) -> str:
 
 @pytest.fixture
 def served() -> Iterator[tuple[subprocess.Popen[str], dict[str, str]]]:
+    with serving("--drives", "2") as running:
+        yield running
+
+
+@contextlib.contextmanager
+def serving(*options: str) -> Iterator[tuple[subprocess.Popen[str], dict[str, str]]]:
     reason = unavailable_reason()
     if reason:
         pytest.skip(f"USB testbed unavailable: {reason}")
-    proc = subprocess.Popen([EPOS_LINK, "sim", "--usb", "--drives", "2"], stdin=subprocess.PIPE,
+    proc = subprocess.Popen([EPOS_LINK, "sim", "--usb", *options], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
     try:
         line = read_line(proc)
@@ -131,3 +138,21 @@ def test_sigusr1_unplugs_and_sigusr2_replugs(
     assert read_line(proc).startswith("replugged usb://?serial=SIM00001 at /dev/bus/usb/001/")
     out = wrapped(env, "read", "usb://", "0", "0x1000", "0", "--type", "u32")
     assert out.returncode == 0, out.stderr
+
+
+def test_trace_records_the_usb_traffic(tmp_path: Path) -> None:
+    trace = tmp_path / "usb.txt"
+    with serving("--trace", str(trace)) as (_, env):
+        out = wrapped(env, "read", "usb://", "0", "0x1000", "0", "--type", "u32")
+        assert out.returncode == 0, out.stderr
+    text = trace.read_text()
+    # ReadObject 0x1000/0 to node 0 (guide 2.1.1.1: op code 0x60, Len 2 words)
+    assert re.search(r"TX 90 02 60 02 00 00 10 00", text), text
+    assert re.search(r"RX 90 02 00 04 00 00 00 00", text), text
+
+
+def test_silent_simulator_times_out_as_a_message() -> None:
+    with serving("--silent") as (_, env):
+        out = wrapped(env, "read", "usb://", "0", "0x1000", "0", "--timeout", "0.2")
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "no answer" in out.stderr

@@ -5,6 +5,11 @@ completes it with its errno, any other exception with EIO (and a traceback on
 stderr). An ioctl left open hangs the client for ever, so nothing here may
 return without completing or handing the ioctl to a timer that will.
 
+Threads: umockdev calls :meth:`Dispatcher.handle` in a thread of its own; the
+answers from the simulator, plug changes and the reap timers come from the
+helper's main loop. One lock serialises every entry point, and a timer checks
+that the hold it fires for is still the one it was made for.
+
 The objects are umockdev's (``IoctlClient``, ``IoctlData``) but this module
 does not import gi: the timer functions are passed in, so the tests run it
 with fakes under any Python. It runs under the system Python in

@@ -39,6 +39,7 @@ import json
 import os
 import shutil
 import sys
+import threading
 from typing import Any
 
 try:
@@ -63,18 +64,23 @@ def _load_gi() -> tuple[Any, Any]:
 
 
 class Relay:
-    """JSON lines to the simulator on stdout; a dead simulator ends this process."""
+    """JSON lines to the simulator on stdout; a dead simulator ends this process.
+
+    Both threads send (bulk OUT data from the ioctl thread, events from the main
+    loop); a line longer than the pipe's atomic size would interleave unlocked."""
 
     def __init__(self, fd: int) -> None:
         self.fd = fd
+        self._lock = threading.Lock()
 
     def send(self, **message: Any) -> None:
         data = (json.dumps(message) + "\n").encode()
-        try:
-            while data:
-                data = data[os.write(self.fd, data):]
-        except OSError:
-            os._exit(0)  # nobody to serve
+        with self._lock:
+            try:
+                while data:
+                    data = data[os.write(self.fd, data):]
+            except OSError:
+                os._exit(0)  # nobody to serve
 
 
 class Bus:
