@@ -54,55 +54,18 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from enum import Enum, IntEnum
-from typing import Callable, Final, List, Optional, Protocol, Sequence, Tuple, Union
+from enum import Enum
+from typing import Callable, Final, Optional, Protocol, Sequence, Tuple, Union
 
 from epos_link.cia402 import State, state_from_statusword
 
+from .cia402_words import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, STATUSWORD,
+                           TARGET_POSITION, TARGET_VELOCITY, Cw, Deadline, Mode, Sw, Timing,
+                           decode_state)
 from .errors import DeviceFailure
 from .sdo import NodeSilent, SdoPort
 
 log = logging.getLogger(__name__)
-
-CONTROLWORD: Final = 0x6040
-STATUSWORD: Final = 0x6041
-MODES_OF_OPERATION: Final = 0x6060
-MODES_DISPLAY: Final = 0x6061
-TARGET_POSITION: Final = 0x607A
-TARGET_VELOCITY: Final = 0x60FF
-
-
-class Cw(IntEnum):
-    """Controlword commands (CiA 402-2 6.4.1.3) and bits."""
-
-    DISABLE_VOLTAGE = 0x00
-    SHUTDOWN = 0x06
-    SWITCH_ON = 0x07  # also "disable operation" from OPERATION ENABLED (transition 5)
-    ENABLE_OPERATION = 0x0F
-    NEW_SET_POINT = 1 << 4  # pp: new set-point; hm: homing operation start
-    CHANGE_SET_IMMEDIATELY = 1 << 5
-    RELATIVE = 1 << 6
-    FAULT_RESET = 1 << 7
-    HALT = 1 << 8
-
-
-class Sw(IntEnum):
-    """Statusword bits (CiA 402-2 6.4.1.4; PSI spec 4.a)."""
-
-    FAULT = 1 << 3
-    TARGET_REACHED = 1 << 10  # with halt set, in pp, pv and hm: "velocity of axis is 0"
-    INTERNAL_LIMIT = 1 << 11
-    OP_MODE_12 = 1 << 12  # pp: set-point acknowledge; pv: speed is zero; hm: homing attained
-    OP_MODE_13 = 1 << 13  # pp: following error; hm: homing error
-
-
-class Mode(IntEnum):
-    """Modes of operation, 6060h (spec command 07)."""
-
-    PROFILE_POSITION = 1
-    PROFILE_VELOCITY = 3
-    HOMING = 6
-
 
 class Why(Enum):
     """Who asked for a lowering of the state (rule 1)."""
@@ -127,38 +90,6 @@ class OutcomeUnknown(DeviceFailure):
     """The node went silent after a write that starts a move (rule 4)."""
 
 
-def decode_state(statusword: int) -> State:
-    """The power state shown by a statusword; DeviceFailure if it shows none."""
-    state = state_from_statusword(statusword)
-    if state is None:
-        raise DeviceFailure(f"statusword 0x{statusword:04X} shows no CiA 402 state")
-    return state
-
-
-class Deadline:
-    """One bound shared by the waits of a sequence (pyserial's ``Timeout``, in small)."""
-
-    def __init__(self, clock: Callable[[], float], timeout: float) -> None:
-        self._clock = clock
-        self._end = clock() + timeout
-
-    def time_left(self, cap: Optional[float] = None) -> float:
-        left = max(self._end - self._clock(), 0.0)
-        return left if cap is None else min(left, cap)
-
-    def expired(self) -> bool:
-        return self._clock() >= self._end
-
-
-@dataclass(frozen=True)
-class Timing:
-    ack_timeout: float = 2.0
-    state_timeout: float = 1.0
-    reset_timeout: float = 5.0
-    reset_delay: float = 0.3
-    poll_interval: float = 0.002
-
-
 class Restore(Protocol):
     """What enable needs to know about the parameters the bridge keeps (rule 3)."""
 
@@ -167,6 +98,9 @@ class Restore(Protocol):
 
     def write(self) -> None:
         """Write every stored drive parameter (spec 85)."""
+
+    def ignore_differences(self) -> None:
+        """From now on :meth:`differs` answers None."""
 
 
 @dataclass(frozen=True)
@@ -276,6 +210,10 @@ class Cia402:
                 raise SafetyRefusal(f"{self.port.name}: refused ({why.value}): the axis is "
                                     "enabled and no client asked to disable or reset it")
             self.bring_to_rest(deadline)
+        elif state is State.QUICK_STOP_ACTIVE:
+            # Still on its quick stop ramp, maybe: let it finish (sw bit 10).
+            self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
+                             "end of quick stop")
         return state
 
     def bring_to_rest(self, deadline: Deadline) -> None:
@@ -293,10 +231,7 @@ class Cia402:
             state = State.SWITCHED_ON
         if state is State.SWITCHED_ON:
             self._step(Cw.SHUTDOWN, State.READY_TO_SWITCH_ON, deadline)
-        elif state is State.QUICK_STOP_ACTIVE:
-            # The quick stop ramp runs on its own; disable voltage once it is over.
-            self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
-                             "end of quick stop")
+        elif state is State.QUICK_STOP_ACTIVE:  # at rest (_lower): disable voltage
             self._expect(None)
             self._step(Cw.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED, deadline)
         # not ready, switch on disabled, ready, fault: the drive function is already off
@@ -380,6 +315,14 @@ class Cia402:
         if self.restore_pending:
             if restore is not None:
                 restore.write()
+                still = restore.differs()
+                if still is not None:
+                    # A drive that does not keep a value as written would look
+                    # power cycled at every enable: trust only the other evidence.
+                    log.warning("%s: after writing the parameters, %s; parameter values "
+                                "are no longer taken as evidence of a power cycle",
+                                self.port.name, still)
+                    restore.ignore_differences()
             self.restore_pending = False
         self._enable_steps(Deadline(self._clock, self.timing.ack_timeout))
 

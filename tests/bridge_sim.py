@@ -166,8 +166,23 @@ class SimBridge:
     def position(self, node: int) -> int:
         return int(self.now(node).position)
 
-    def velocity(self, node: int) -> int:
-        return int(self.now(node).velocity)
+    def positions(self, *nodes: int) -> List[int]:
+        """The positions of several drives at one and the same instant."""
+        sims = [self.sim.drives[n] for n in nodes]
+        for sim in sims:
+            sim.lock.acquire()
+        try:
+            t = self.sim.clock()
+            for sim in sims:
+                sim.drive.update(t)  # no drive is past t: we hold every lock
+            return [int(sim.drive.position) for sim in sims]
+        finally:
+            for sim in sims:
+                sim.lock.release()
+
+    def velocity(self, node: int) -> float:
+        """The axis velocity in increments per second (606Ch is in rpm on an EPOS4)."""
+        return float(self.now(node).velocity_increments)
 
     def wait_until(self, what: Callable[[], bool], timeout: float = 10.0, why: str = "") -> None:
         deadline = time.monotonic() + timeout

@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from importlib import resources
 from pathlib import Path
 from typing import Any, Dict
 
 import pytest
 
-from tcp_bridge.axes import DEFAULTS, AxisTable, BusOffset, ConfigError, DeviceCode, simulated_table
+from tcp_bridge.axes import (DEFAULTS, AxisTable, BusOffset, ConfigError, DeviceCode,
+                             simulated_increments_per_revolution, simulated_table)
 from tcp_bridge.parameters import ParameterStore, write_atomically
 
 # An EPOS4 (device 5) takes rpm: rpm = user/s * factor * 60 / IPR. With IPR 60 and
@@ -86,6 +89,10 @@ def test_addr_defaults_to_position_and_parameters_by_name_or_number() -> None:
     ({"bus": {"can3": {"backend": "instant"}}}, "can3"),
     ({"bus": {"can1": {"interface": "virtual"}}}, "backend"),
     ({"extra": 1}, "extra"),
+    # issue 10: an EPOS4 takes rpm, which needs the encoder's resolution
+    ({"axis": [{"node_id": 1, "device": 5}]}, "needs increments_per_revolution: the motor"),
+    ({"axis": [{"node_id": 1, "device": 5, "increments_per_revolution": 0}]},
+     "increments_per_revolution must be a positive integer"),
 ])
 def test_invalid_tables_are_refused_with_a_reason(change: Dict[str, Any], message: str) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace(".", r"\.")):
@@ -115,8 +122,23 @@ def test_simulated_table() -> None:
         (1, 1, 1000, DeviceCode.C_DC_MAXON_EPOS4), (2, 2, 1000, DeviceCode.C_DC_MAXON_EPOS4),
         (3, 3, 1000, DeviceCode.C_DC_MAXON_EPOS4)]
     assert t.buses["can1"].backend == "sim"
+    # the simulated EPOS4's main sensor resolution (3000h/05h of its EDS)
+    assert {a.increments_per_revolution for a in t.axes.values()} == {
+        simulated_increments_per_revolution()}
     with pytest.raises(ConfigError):
         simulated_table(61)
+
+
+def test_device_5_needs_increments_per_revolution_from_the_command_line(tmp_path: Path) -> None:
+    path = tmp_path / "axes.toml"
+    path.write_text('[bus.can1]\nbackend = "instant"\n[[axis]]\ndevice = 5\nnode_id = 1\n')
+    result = subprocess.run([sys.executable, "-c", "import sys; from tcp_bridge.cli import main; "
+                             "sys.exit(main(sys.argv[1:]))", "serve", "--config", str(path)],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "axis 1" in lines[0] and "increments_per_revolution" in lines[0]
 
 
 # --- the parameter array ----------------------------------------------------------

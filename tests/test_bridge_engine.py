@@ -819,3 +819,101 @@ def test_a_multi_axis_move_that_times_out_is_halted() -> None:
         assert time.monotonic() < deadline, "the axes were not halted"
         time.sleep(0.01)
     engine.close()
+
+
+# --- EPOS4 units (issue 10, finding 4) ------------------------------------------------------
+
+
+def epos4(ipr: int = 2048, **extra: Any) -> Tuple[Engine, Dict[int, FakeNode]]:
+    return make([{"device": 5, "node_id": 1, "position_factor": 1000,
+                  "increments_per_revolution": ipr, **extra}])
+
+
+def test_epos4_velocities_are_rpm_and_accelerations_rpm_per_second() -> None:
+    engine, nodes = epos4(2048)  # 512-pulse encoder x 4
+    ok(engine, "1S05=10")  # 10 mm/s = 10000 inc/s = 10000 * 60 / 2048 rpm = 292.97 -> 293
+    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 293)]
+    ok(engine, "1S06=100")  # 100 mm/s^2 = 2929.7 rpm/s -> 2930, deceleration too
+    assert downloads(nodes[1], 0x6083) == [(0x6083, 0, 2930)]
+    assert downloads(nodes[1], 0x6084) == [(0x6084, 0, 2930)]
+    for cmd, index, sub in ((26, 0x607F, 0), (41, 0x6099, 1), (42, 0x6099, 2)):
+        ok(engine, f"1S{cmd}=10")
+        assert downloads(nodes[1], index)[-1] == (index, sub, 293)
+    for cmd, index in ((27, 0x60C5), (28, 0x6085), (43, 0x609A)):
+        ok(engine, f"1S{cmd}=100")
+        assert downloads(nodes[1], index)[-1] == (index, 0, 2930)
+    assert ok(engine, "1R05") == "10"  # the stored value, as written
+    nodes[1].values[(0x606C, 0)] = 293  # 293 rpm actual = 10.0012 mm/s
+    assert float(ok(engine, "1R14")) == pytest.approx(10.0, abs=0.01)
+    ok(engine, "1S04=1")
+    ok(engine, "1S05=-10")
+    ok(engine, "1S00=3")
+    assert nodes[1].values[(0x60FF, 0)] == -293
+
+
+def test_epos4_velocity_prefix_from_60a9_is_honoured() -> None:
+    engine, nodes = epos4(2048)
+    nodes[1].values[(0x60A9, 0)] = 0xFAB44700  # micro-rpm
+    ok(engine, "1S05=10")
+    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 292968750)]  # 292.96875 rpm in urpm
+    ok(engine, "1S06=100")  # 60AAh is fixed: accelerations stay rpm/s
+    assert downloads(nodes[1], 0x6083) == [(0x6083, 0, 2930)]
+
+
+def test_an_unknown_velocity_unit_refuses_velocity_commands_only(caplog: Any) -> None:
+    engine, nodes = epos4(2048)
+    nodes[1].values[(0x60A9, 0)] = 0x00B44800  # revolutions per hour: not rpm
+    assert ask(engine, "1S05=10").status is Status.NAK
+    assert downloads(nodes[1], 0x6081) == []
+    assert "0x00B44800 is not rpm" in caplog.text
+    assert ask(engine, "1R14").status is Status.NAK
+    ok(engine, "1S06=100")  # accelerations do not depend on 60A9h
+    ok(engine, "1S02=1")
+    ok(engine, "1S04=1")
+    ok(engine, "1S00=1")  # a position move needs no velocity unit
+
+
+def test_devices_1_to_4_keep_increments_per_second() -> None:
+    engine, nodes = make([{"device": 2, "node_id": 1, "position_factor": 1000}])
+    ok(engine, "1S05=10")
+    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 10000)]
+
+
+def test_device_code_5_needs_increments_per_revolution() -> None:
+    engine, nodes = make([{"device": 2, "node_id": 1, "position_factor": 1000}])
+    assert ask(engine, "1S19=5").status is Status.CAN
+    engine, nodes = make([{"device": 2, "node_id": 1, "position_factor": 1000,
+                           "increments_per_revolution": 2048}])
+    ok(engine, "1S19=5")
+    ok(engine, "1S05=10")
+    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 293)]
+
+
+def test_a_velocity_unit_written_through_81_is_read_again() -> None:
+    engine, nodes = epos4(2048)
+    ok(engine, "1S05=10")
+    ok(engine, "1S80=0x60A90004")
+    ok(engine, "1S81=0xFAB44700")
+    ok(engine, "1S05=10")
+    assert downloads(nodes[1], 0x6081)[-1] == (0x6081, 0, 292968750)
+
+
+class RoundingNode(FakeNode):
+    """A drive that keeps 6081h to a multiple of 10, whatever was written."""
+
+    def download(self, index: int, subindex: int, data: bytes, force_segment: bool = False) -> None:
+        super().download(index, subindex, data, force_segment)
+        if index == 0x6081:
+            self.values[(0x6081, 0)] -= self.values[(0x6081, 0)] % 10
+
+
+def test_a_drive_that_rounds_a_parameter_is_not_reset_at_every_enable() -> None:
+    engine, nodes = epos4(IPR, parameters={"velocity": 2.005})  # 2005 rpm, kept as 2000
+    node = RoundingNode(1)
+    engine.axes[1].port.node = node  # type: ignore[union-attr]
+    ok(engine, "1S04=1")  # differs: reset and restore, then it still differs
+    assert node.resets == 1
+    for _ in range(3):
+        ok(engine, "1S04=0")
+        ok(engine, "1S04=1")
+    assert node.resets == 1
