@@ -3,7 +3,8 @@
 The device logic is pure (:mod:`.device`); this module adds what a real link
 has: timing (a baud rate, the device's frame timeout of guide 2.2.7) and
 faults (dropped, corrupted or delayed reply bytes, silence, disconnects).
-One host at a time, like the real device.
+One host at a time, like the real device: a second TCP host is told so and
+closed (:meth:`TcpLink._refuse`).
 """
 from __future__ import annotations
 
@@ -23,6 +24,11 @@ from ..capture import CaptureWriter
 log = logging.getLogger(__name__)
 
 BITS_PER_BYTE = 10  # 8N1: start, 8 data, stop (guide 2.2.6)
+# What a second TCP host reads before the simulator closes its connection. Not
+# a frame (no DLE STX), so a MAXON SERIAL V2 client discards it as junk and
+# then sees the connection closed; a person with nc or telnet reads it.
+BUSY_MESSAGE = (b"epos-link sim: busy: another host is connected; this simulated EPOS4 "
+                b"serves one host at a time\r\n")
 
 
 class Device(Protocol):
@@ -241,8 +247,10 @@ class TcpLink:
                 conn.settimeout(None)
 
                 def read(timeout: float, conn: socket.socket = conn) -> Optional[bytes]:
-                    ready, _, _ = select.select([conn], [], [], timeout)
-                    if not ready:
+                    ready, _, _ = select.select([conn, self.sock], [], [], timeout)
+                    if self.sock in ready:
+                        self._refuse()
+                    if conn not in ready:
                         return b""
                     try:
                         data = conn.recv(4096)
@@ -255,6 +263,25 @@ class TcpLink:
                 except OSError as exc:
                     log.info("host connection ended: %s", exc)
                 self.server.replies = 0
+
+    def _refuse(self) -> None:
+        """A second host while one is served: told so in one line, then closed.
+
+        Like the device, the link serves one host at a time: two hosts' frames
+        would interleave in one receive buffer. Without this, the second
+        connection would wait in the listen backlog, never answered.
+        """
+        try:
+            other, peer = self.sock.accept()
+        except OSError:
+            return
+        with other:
+            log.warning("refused a second host %s:%s while one is connected (one host at a time)",
+                        *peer[:2])
+            try:
+                other.sendall(BUSY_MESSAGE)
+            except OSError:
+                pass
 
     def close(self) -> None:
         self.server.stop()
