@@ -13,25 +13,55 @@ import importlib
 import sys
 from typing import Optional, Sequence
 
-# name -> (module, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "decode": ("epos_link.tools.decode", "decode frames from hex or a capture file"),
-    "read": ("epos_link.tools.access", "read an object of a node (ReadObject or segmented read)"),
-    "write": ("epos_link.tools.access", "write an object of a node (WriteObject or segmented write)"),
-    "scan": ("epos_link.tools.access", "find the CANopen nodes that answer (0x1000, 0x1008, 0x1018)"),
-    "nmt": ("epos_link.tools.access", "send an NMT command (SendNMTService)"),
-    "ports": ("epos_link.tools.ports", "list serial ports and EPOS4 USB devices"),
-    "sim": ("epos_link.tools.sim", "serve a simulated EPOS4 on a pty or TCP"),
+# name -> (module, one-line help, one example)
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "read": ("epos_link.tools.access", "read an object by index or name, typed by the EDS",
+             'epos-link read /dev/ttyUSB0 1 "Position actual value"'),
+    "write": ("epos_link.tools.access", "write an object by index or name, typed by the EDS",
+              "epos-link write /dev/ttyUSB0 1 0x6081 0 1000"),
+    "scan": ("epos_link.tools.scan", "find the CANopen nodes that answer, printing each as found",
+             "epos-link scan /dev/ttyUSB0 --nodes 1-10"),
+    "nmt": ("epos_link.tools.access", "send an NMT command (SendNMTService)",
+            "epos-link nmt /dev/ttyUSB0 0 start"),
+    "monitor": ("epos_link.tools.monitor", "a transparent proxy that shows every frame between an "
+                "application and the device", "epos-link monitor /dev/ttyUSB0 --pty --record cap.txt"),
+    "decode": ("epos_link.tools.decode", "decode frames from hex, a capture file or standard input",
+               "epos-link decode --follow cap.txt"),
+    "export": ("epos_link.tools.export", "write a capture as pcapng for Wireshark",
+               "epos-link export cap.txt -o cap.pcapng"),
+    "wireshark": ("epos_link.tools.wireshark", "the Wireshark dissector: print its path or install it",
+                  "tshark -X lua_script:$(epos-link wireshark path) -r cap.pcapng"),
+    "backup": ("epos_link.tools.backup", "read every readable object of a node into a DCF",
+               "epos-link backup /dev/ttyUSB0 1 -o drive1.dcf"),
+    "restore": ("epos_link.tools.backup", "write back the objects of a DCF that differ",
+                "epos-link restore /dev/ttyUSB0 1 drive1.dcf --dry-run"),
+    "ports": ("epos_link.tools.ports", "list serial ports and EPOS4 USB devices", "epos-link ports"),
+    "sim": ("epos_link.tools.sim", "serve a simulated EPOS4 on a pty or TCP",
+            "epos-link sim --tcp 127.0.0.1:0 --drives 2,3"),
 }
+
+
+def _overview() -> str:
+    width = max(map(len, COMMANDS))
+    lines = ["commands:"]
+    for name, (_, help_text, example) in COMMANDS.items():
+        lines.append(f"  {name:<{width}}  {help_text}")
+        lines.append(f"  {'':<{width}}    e.g. {example}")
+    lines.append("")
+    lines.append("URLs: a serial device (/dev/ttyUSB0, COM3), usb://, socket://HOST:PORT, sim://, "
+                 "replay://CAPTURE.txt")
+    lines.append("'epos-link COMMAND --help' tells more.")
+    return "\n".join(lines)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="epos-link", description="maxon EPOS4 USB/RS232 protocol tools")
+        prog="epos-link", description="maxon EPOS4 USB/RS232 protocol tools",
+        epilog=_overview(), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name, (module, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+    for name, (module, help_text, example) in COMMANDS.items():
+        p = sub.add_parser(name, description=f"{help_text}. Example: {example}")
         p.set_defaults(_module=module)
         importlib.import_module(module).add_arguments(p)
     return parser

@@ -99,6 +99,9 @@ class Restore(Protocol):
     def write(self) -> None:
         """Write every stored drive parameter (spec 85)."""
 
+    def ignore_differences(self) -> None:
+        """From now on :meth:`differs` answers None."""
+
 
 @dataclass(frozen=True)
 class PositionMove:
@@ -207,6 +210,10 @@ class Cia402:
                 raise SafetyRefusal(f"{self.port.name}: refused ({why.value}): the axis is "
                                     "enabled and no client asked to disable or reset it")
             self.bring_to_rest(deadline)
+        elif state is State.QUICK_STOP_ACTIVE:
+            # Still on its quick stop ramp, maybe: let it finish (sw bit 10).
+            self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
+                             "end of quick stop")
         return state
 
     def bring_to_rest(self, deadline: Deadline) -> None:
@@ -224,10 +231,7 @@ class Cia402:
             state = State.SWITCHED_ON
         if state is State.SWITCHED_ON:
             self._step(Cw.SHUTDOWN, State.READY_TO_SWITCH_ON, deadline)
-        elif state is State.QUICK_STOP_ACTIVE:
-            # The quick stop ramp runs on its own; disable voltage once it is over.
-            self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
-                             "end of quick stop")
+        elif state is State.QUICK_STOP_ACTIVE:  # at rest (_lower): disable voltage
             self._expect(None)
             self._step(Cw.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED, deadline)
         # not ready, switch on disabled, ready, fault: the drive function is already off
@@ -311,6 +315,14 @@ class Cia402:
         if self.restore_pending:
             if restore is not None:
                 restore.write()
+                still = restore.differs()
+                if still is not None:
+                    # A drive that does not keep a value as written would look
+                    # power cycled at every enable: trust only the other evidence.
+                    log.warning("%s: after writing the parameters, %s; parameter values "
+                                "are no longer taken as evidence of a power cycle",
+                                self.port.name, still)
+                    restore.ignore_differences()
             self.restore_pending = False
         self._enable_steps(Deadline(self._clock, self.timing.ack_timeout))
 

@@ -120,6 +120,7 @@ class AxisOps:
         # Profile objects of a slave that followed its master's profile, with the
         # values to put back before it moves on its own (tcp_bridge.moves).
         self.borrowed_profile: Dict[ObjectRef, int] = {}
+        self._compare_parameters = True  # motion.Restore.ignore_differences
         nmt = getattr(getattr(port, "node", None), "nmt", None)
         if self.drive is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
@@ -450,6 +451,8 @@ class AxisOps:
         """
         port = self._port()
         self.velocity_exponent = None  # 60A9h may be back at its saved value
+        if not self._compare_parameters:
+            return None
         for obj, raw in self._stored_writes():
             if obj in self.borrowed_profile:
                 continue
@@ -462,6 +465,9 @@ class AxisOps:
             if held != raw:
                 return (f"0x{obj.index:04X}/{obj.subindex} holds {held}, the bridge wrote {raw}")
         return None
+
+    def ignore_differences(self) -> None:
+        self._compare_parameters = False
 
 
 __all__ = ["AxisOps", "DRIVE_PARAMETERS", "Value", "detailed_error_from_code"]

@@ -896,3 +896,24 @@ def test_a_velocity_unit_written_through_81_is_read_again() -> None:
     ok(engine, "1S81=0xFAB44700")
     ok(engine, "1S05=10")
     assert downloads(nodes[1], 0x6081)[-1] == (0x6081, 0, 292968750)
+
+
+class RoundingNode(FakeNode):
+    """A drive that keeps 6081h to a multiple of 10, whatever was written."""
+
+    def download(self, index: int, subindex: int, data: bytes, force_segment: bool = False) -> None:
+        super().download(index, subindex, data, force_segment)
+        if index == 0x6081:
+            self.values[(0x6081, 0)] -= self.values[(0x6081, 0)] % 10
+
+
+def test_a_drive_that_rounds_a_parameter_is_not_reset_at_every_enable() -> None:
+    engine, nodes = epos4(IPR, parameters={"velocity": 2.005})  # 2005 rpm, kept as 2000
+    node = RoundingNode(1)
+    engine.axes[1].port.node = node  # type: ignore[union-attr]
+    ok(engine, "1S04=1")  # differs: reset and restore, then it still differs
+    assert node.resets == 1
+    for _ in range(3):
+        ok(engine, "1S04=0")
+        ok(engine, "1S04=1")
+    assert node.resets == 1

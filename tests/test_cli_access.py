@@ -53,34 +53,63 @@ def cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
     return code, out, err
 
 
-def test_read_u32_default(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+def test_read_type_and_name_from_the_eds(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    # 0x6064 Position actual value is INTEGER32 (CiA 402; the shipped EDS).
     code, out, err = cli(capsys, "read", dev.url, "1", "0x6064", "0")
-    assert (code, out, err) == (0, "E8 03 00 00 -> u32 1000 (0x000003E8)\n", "")
+    assert (code, out, err) == (0, "E8 03 00 00 -> i32 1000 (0x000003E8)  Position actual value\n", "")
+    code, out_by_name, _ = cli(capsys, "read", dev.url, "1", "Position actual value")
+    assert (code, out_by_name) == (0, out)
+    code, out_snake, _ = cli(capsys, "read", dev.url, "1", "position_actual_value")
+    assert (code, out_snake) == (0, out)
+
+
+def test_unknown_object_is_read_as_u32_with_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
+    script = dict([read_pair(1, 0x5FFF, 0, (7).to_bytes(4, "little"))])
+    with SocketResponder(script) as dev:
+        code, out, err = cli(capsys, "read", dev.url, "1", "0x5FFF")
+    assert (code, out) == (0, "07 00 00 00 -> u32 7 (0x00000007)\n")
+    assert "0x5FFF/0x00 is not in the object dictionary" in err and "--type" in err
+
+
+def test_unknown_name_is_a_usage_error(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
+    before = dev.requests
+    code, _, err = cli(capsys, "read", dev.url, "1", "Positon actual value")
+    assert code == 2 and "no object named 'Positon actual value'" in err
+    assert "position_actual_value" in err  # the suggestion
+    assert dev.requests == before
 
 
 def test_read_decimal_index_and_json(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "read", dev.url, "1", "24676", "0x0", "--json")
     assert code == 0
-    assert json.loads(out) == {"node": 1, "index": 0x6064, "subindex": 0, "data": "e8030000"}
+    assert json.loads(out) == {"node": 1, "index": 0x6064, "subindex": 0, "name": "Position actual value",
+                               "type": "i32", "value": 1000, "raw": "e8030000", "data": "e8030000"}
 
 
 def test_read_signed(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "read", dev.url, "1", "0x6077", "0", "--type", "i16")
-    assert (code, out) == (0, "FB FF FF FF -> i16 -5 (0xFFFB)\n")
+    assert (code, out) == (0, "FB FF -> i16 -5 (0xFFFB)\n")
 
 
 def test_read_str_by_segmented_read(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "read", dev.url, "1", "0x1008", "0", "--type", "str")
-    assert code == 0 and out.endswith('-> str "EPOS4 Compact 50/8 CAN"\n')
+    assert code == 0 and out.endswith('-> str "EPOS4 Compact 50/8 CAN"  Manufacturer device name\n')
+    code, out_eds, _ = cli(capsys, "read", dev.url, "1", "Manufacturer device name")  # VISIBLE_STRING
+    assert (code, out_eds) == (0, out)
     code, out, _ = cli(capsys, "read", dev.url, "1", "0x1008", "0", "--type", "bytes", "--json")
     assert json.loads(out)["data"] == NAME.hex()
 
 
 def test_write_int_types(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "write", dev.url, "1", "0x6040", "0", "0xF", "--type", "u16")
-    assert (code, out) == (0, "wrote 0F 00 to node 1 0x6040/0x00\n")
+    assert (code, out) == (0, "wrote u16 15 (0x000F) [0F 00] to node 1 0x6040/0x00 Controlword\n")
     code, out, _ = cli(capsys, "write", dev.url, "1", "0x607A", "0", "-100", "--type", "i32")
     assert code == 0
+    # By name, the type from the EDS (Controlword is UNSIGNED16, Target position INTEGER32).
+    code, out, _ = cli(capsys, "write", dev.url, "1", "Controlword", "0xF")
+    assert (code, out) == (0, "wrote u16 15 (0x000F) [0F 00] to node 1 0x6040/0x00 Controlword\n")
+    code, out, _ = cli(capsys, "write", dev.url, "1", "target_position", "-100")
+    assert code == 0 and out.startswith("wrote i32 -100 (0xFFFFFF9C) [9C FF FF FF]")
 
 
 def test_write_str_by_segmented_write(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
@@ -119,9 +148,11 @@ def test_value_out_of_range_exits_2(dev: SocketResponder, capsys: pytest.Capture
 
 def test_bad_number_is_a_usage_error(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as info:
-        main(["read", dev.url, "1", "zz", "0"])
+        main(["read", dev.url, "1", "0x6064", "zz"])
     assert info.value.code == 2
     assert "not a decimal or 0x-hex number" in capsys.readouterr().err
+    code, _, err = cli(capsys, "write", dev.url, "1", "0x6040", "0", "zz", "--type", "u16")
+    assert code == 2 and "not a decimal or 0x-hex number" in err
 
 
 def test_nmt(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
@@ -164,9 +195,9 @@ def test_read_and_write_over_a_pty(capsys: pytest.CaptureFixture[str]) -> None:
     with PtyResponder(SCRIPT) as dev:
         assert dev.path.startswith("/dev/")
         code, out, _ = cli(capsys, "read", dev.path, "1", "0x6064", "0", "--baud", "115200")
-        assert (code, out) == (0, "E8 03 00 00 -> u32 1000 (0x000003E8)\n")
+        assert (code, out) == (0, "E8 03 00 00 -> i32 1000 (0x000003E8)  Position actual value\n")
         code, out, _ = cli(capsys, "write", dev.path, "1", "0x6040", "0", "15", "--type", "u16")
-        assert (code, out) == (0, "wrote 0F 00 to node 1 0x6040/0x00\n")
+        assert (code, out) == (0, "wrote u16 15 (0x000F) [0F 00] to node 1 0x6040/0x00 Controlword\n")
         code, _, err = cli(capsys, "read", dev.path, "2", "0x1234", "0")
         assert code == 1 and "0x06020000" in err
 
@@ -175,7 +206,7 @@ def test_console_script_exit_codes_without_traceback(dev: SocketResponder) -> No
     run = lambda *a: subprocess.run([sys.executable, "-m", "epos_link.cli", *a],  # noqa: E731
                                     capture_output=True, text=True, timeout=60)
     ok = run("read", dev.url, "1", "0x6064", "0")
-    assert (ok.returncode, ok.stdout) == (0, "E8 03 00 00 -> u32 1000 (0x000003E8)\n")
+    assert (ok.returncode, ok.stdout) == (0, "E8 03 00 00 -> i32 1000 (0x000003E8)  Position actual value\n")
     err = run("read", dev.url, "2", "0x1234", "0")
     assert err.returncode == 1 and "Traceback" not in err.stderr
     gone = run("read", "socket://127.0.0.1:1", "1", "0x6064", "0")

@@ -1,20 +1,26 @@
-"""``epos-link read | write | scan | nmt``: object access through an EPOS4 (and its gateway).
+"""``epos-link read | write | nmt``: object access through an EPOS4 (and its gateway).
 
 ::
 
-    epos-link read  URL NODE INDEX SUBINDEX [--type T] [--json]
-    epos-link write URL NODE INDEX SUBINDEX VALUE [--type T]
-    epos-link scan  URL [--nodes 1-127] [--node-timeout S] [--json]
+    epos-link read  URL NODE (INDEX [SUBINDEX] | NAME) [--type T] [--eds FILE] [--json]
+    epos-link write URL NODE (INDEX [SUBINDEX] | NAME) VALUE [--type T] [--eds FILE]
     epos-link nmt   URL NODE start|stop|preop|reset|reset-comm
 
-Types: ``u8 u16 u32 i8 i16 i32`` (default ``u32``) use ReadObject/WriteObject
-(guide 2.1.1.1, 2.1.2.1); ``str`` and ``bytes`` read the whole object by
-segmented read, and write by WriteObject up to 4 bytes, else by segmented write
-(node 0 or --gateway-id only, guide 2.1.2.2). NODE 0 is the connected EPOS4;
-other ids are forwarded by its CAN gateway (guide chapter 5). Numbers are
-decimal or 0x-hex.
+An object is named by index (0x6064 or 24676, subindex 0 when left out) or by
+its name in the object dictionary (``"Position actual value"``,
+``position_actual_value``, ``"Identity object.Serial number"``; see
+:mod:`epos_link.tools.objects`). The dictionary is the shipped EPOS4 EDS, or
+``--eds FILE`` (an EDS or DCF). Its data type decodes and encodes the value;
+``--type`` overrides it. An object the dictionary does not know is read as
+``u32`` with a warning on standard error.
 
-One module serves four subcommands: ``epos_link.cli`` builds each
+Objects of up to 4 bytes travel by ReadObject/WriteObject (guide 2.1.1.1,
+2.1.2.1); longer ones (strings, domains, 64-bit numbers) by segmented read,
+and by segmented write to node 0 or --gateway-id only (guide 2.1.2.2). NODE 0
+is the connected EPOS4; other ids are forwarded by its CAN gateway (guide
+chapter 5). Numbers are decimal or 0x-hex.
+
+One module serves three subcommands: ``epos_link.cli`` builds each
 subparser with ``add_arguments`` and the subcommand is told apart by the
 subparser's name (the last word of its ``prog``).
 """
@@ -23,69 +29,58 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Optional
 
-from ..capture import CaptureFormatError, parse_hex
 from ..client import NMT_COMMANDS, EposClient
 from ..errors import LocalProtocolError
-from .common import add_link_options, add_url, guarded, open_client, parse_int, positive_float
+from .common import add_link_options, add_url, guarded, open_client, parse_int
+from .objects import TYPE_NAMES, TYPES, ObjectInfo, ValueType, load_directory
 
-# name -> (size in bytes, signed)
-INT_TYPES: dict[str, tuple[int, bool]] = {
-    "u8": (1, False), "u16": (2, False), "u32": (4, False),
-    "i8": (1, True), "i16": (2, True), "i32": (4, True),
-}
-TYPES = [*INT_TYPES, "str", "bytes"]
+DEFAULT_TYPE = "u32"
 
 
 def _hex(data: bytes) -> str:
     return data.hex(" ").upper() or "(empty)"
 
 
-def _address_arguments(parser: argparse.ArgumentParser) -> None:
+def _node(text: str) -> int:
+    node = parse_int(text)
+    if not 0 <= node <= 127:
+        raise argparse.ArgumentTypeError(f"node ids are 0..127, got {node}")
+    return node
+
+
+def _object_arguments(parser: argparse.ArgumentParser) -> None:
     add_url(parser)
-    parser.add_argument("node", metavar="NODE", type=parse_int,
+    parser.add_argument("node", metavar="NODE", type=_node,
                         help="CANopen node id: 0 = the connected EPOS4, 1..127 = via its gateway")
-    parser.add_argument("index", metavar="INDEX", type=parse_int, help="object index (0x6064 or 24676)")
-    parser.add_argument("subindex", metavar="SUBINDEX", type=parse_int, help="object subindex")
+    parser.add_argument("object", metavar="INDEX|NAME",
+                        help='object index (0x6064 or 24676) or name ("Position actual value")')
+
+
+def _dictionary_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--type", choices=TYPE_NAMES, default=None,
+                        help="value type, overriding the object dictionary's")
+    parser.add_argument("--eds", metavar="FILE",
+                        help="object dictionary (EDS or DCF) for names and types (default: the shipped EPOS4 EDS)")
 
 
 def _add_read(parser: argparse.ArgumentParser) -> None:
-    _address_arguments(parser)
-    parser.add_argument("--type", choices=TYPES, default="u32", help="value type (default u32)")
+    _object_arguments(parser)
+    parser.add_argument("subindex", metavar="SUBINDEX", nargs="?", type=parse_int, default=None,
+                        help="object subindex (default 0)")
+    _dictionary_options(parser)
     parser.add_argument("--json", action="store_true",
-                        help='print {"node", "index", "subindex", "data": hex of the bytes read}')
+                        help='print {"node", "index", "subindex", "name", "type", "value", "raw"}')
     add_link_options(parser)
 
 
 def _add_write(parser: argparse.ArgumentParser) -> None:
-    _address_arguments(parser)
-    parser.add_argument("value", metavar="VALUE",
-                        help="a number for integer types, text for str, hex bytes for bytes")
-    parser.add_argument("--type", choices=TYPES, default="u32", help="value type (default u32)")
-    add_link_options(parser)
-
-
-def _node_list(text: str) -> list[int]:
-    """``1-127``, ``1,2,5`` or a mix (``1-4,10``)."""
-    nodes: list[int] = []
-    try:
-        for part in text.split(","):
-            lo, _, hi = part.partition("-")
-            first = parse_int(lo)
-            nodes.extend(range(first, parse_int(hi) + 1) if hi else [first])
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a node list like 1-127 or 1,2,5") from None
-    return nodes
-
-
-def _add_scan(parser: argparse.ArgumentParser) -> None:
-    add_url(parser)
-    parser.add_argument("--nodes", type=_node_list, default=list(range(1, 128)), metavar="LIST",
-                        help="node ids to try: 1-127 (default), 1,2,5, 0-3,10")
-    parser.add_argument("--node-timeout", type=positive_float, default=0.1, metavar="SECONDS",
-                        help="how long to wait for each node's device type (default 0.1)")
-    parser.add_argument("--json", action="store_true", help="one JSON object per node found")
+    _object_arguments(parser)
+    parser.add_argument("rest", metavar="[SUBINDEX] VALUE", nargs="+",
+                        help="a number for integer types, text for strings, hex for bytes")
+    _dictionary_options(parser)
     add_link_options(parser)
 
 
@@ -96,71 +91,98 @@ def _add_nmt(parser: argparse.ArgumentParser) -> None:
     add_link_options(parser)
 
 
-def decode_value(data: bytes, type_name: str) -> str:
-    """The typed value of bytes read, for display."""
-    if type_name in INT_TYPES:
-        size, signed = INT_TYPES[type_name]
-        value = int.from_bytes(data[:size], "little", signed=signed)
-        return f"{type_name} {value} (0x{value & ((1 << 8 * size) - 1):0{2 * size}X})"
-    if type_name == "str":
-        return "str " + json.dumps(data.rstrip(b"\x00").decode("utf-8", errors="replace"))
-    return f"bytes {len(data)}"
+@dataclass(frozen=True)
+class Target:
+    """The object a command addresses, and the type its value is read with."""
+
+    node: int
+    index: int
+    subindex: int
+    info: Optional[ObjectInfo]
+    type: ValueType
+
+    @property
+    def name(self) -> Optional[str]:
+        return self.info.name if self.info else None
+
+    def describe(self) -> str:
+        where = f"node {self.node} 0x{self.index:04X}/0x{self.subindex:02X}"
+        return f"{where} {self.name}" if self.name else where
 
 
-def encode_value(text: str, type_name: str) -> bytes:
-    """The bytes to write for VALUE given as text."""
-    if type_name in INT_TYPES:
-        size, signed = INT_TYPES[type_name]
-        try:
-            value = parse_int(text)
-        except argparse.ArgumentTypeError as exc:
-            raise LocalProtocolError(str(exc)) from None
-        lo, hi = (-(1 << (8 * size - 1)), (1 << (8 * size - 1)) - 1) if signed else (0, (1 << 8 * size) - 1)
-        if not lo <= value <= hi:
-            raise LocalProtocolError(f"{text} is out of range for {type_name} ({lo}..{hi})")
-        return value.to_bytes(size, "little", signed=signed)
-    if type_name == "str":
-        return text.encode("utf-8")
+def _is_number(text: str) -> bool:
     try:
-        return parse_hex(text)
-    except CaptureFormatError as exc:
-        raise LocalProtocolError(str(exc)) from None
+        parse_int(text)
+    except argparse.ArgumentTypeError:
+        return False
+    return True
+
+
+def resolve_target(args: argparse.Namespace, subindex_text: Optional[str]) -> Target:
+    """INDEX [SUBINDEX] or NAME [SUBINDEX] against the dictionary; warns (stderr) when the
+    type is a guess."""
+    directory = load_directory(args.eds, max(args.node, 1))
+    try:
+        subindex = parse_int(subindex_text) if subindex_text is not None else None
+    except argparse.ArgumentTypeError as exc:
+        raise LocalProtocolError(f"SUBINDEX: {exc}") from None
+    if _is_number(args.object):
+        index = parse_int(args.object)
+        if not 0 <= index <= 0xFFFF:
+            raise LocalProtocolError(f"index {args.object} is not 0..0xFFFF")
+        sub = subindex or 0
+        info = directory.find(index, sub)
+    else:
+        info = directory.resolve(args.object, subindex)
+        index, sub = info.index, info.subindex
+    if not 0 <= sub <= 0xFF:
+        raise LocalProtocolError(f"subindex {sub} is not 0..0xFF")
+    if args.type:
+        typ = TYPES[args.type]
+    elif info is not None and info.type is not None:
+        typ = info.type
+    else:
+        typ = TYPES[DEFAULT_TYPE]
+        what = "has no type we know" if info else "is not in the object dictionary"
+        print(f"epos-link: warning: 0x{index:04X}/0x{sub:02X} {what} ({directory.source}): "
+              f"taken as {DEFAULT_TYPE}; --type picks another", file=sys.stderr)
+    return Target(args.node, index, sub, info, typ)
+
+
+def read_value(client: EposClient, target: Target) -> bytes:
+    """The object's bytes: ReadObject for types of up to 4 bytes, else a segmented read."""
+    if target.type.small:
+        return client.read_object(target.node, target.index, target.subindex)
+    return client.upload(target.node, target.index, target.subindex)
 
 
 def _read(args: argparse.Namespace, client: EposClient) -> int:
-    if args.type in INT_TYPES:
-        data = client.read_object(args.node, args.index, args.subindex)
-    else:
-        data = client.upload(args.node, args.index, args.subindex)
+    target = resolve_target(args, None if args.subindex is None else str(args.subindex))
+    data = read_value(client, target)
+    typ = target.type
+    value = typ.decode(data)
+    shown = data[:typ.size] if typ.size is not None else data
     if args.json:
-        print(json.dumps({"node": args.node, "index": args.index, "subindex": args.subindex,
-                          "data": data.hex()}))
+        print(json.dumps({"node": target.node, "index": target.index, "subindex": target.subindex,
+                          "name": target.name, "type": typ.name,
+                          "value": value.hex() if isinstance(value, bytes) else value,
+                          "raw": shown.hex(), "data": data.hex()}))
     else:
-        print(f"{_hex(data)} -> {decode_value(data, args.type)}")
+        name = f"  {target.name}" if target.name else ""
+        print(f"{_hex(shown)} -> {typ.name} {typ.format(value)}{name}")
     return 0
 
 
 def _write(args: argparse.Namespace, client: EposClient) -> int:
-    data = encode_value(args.value, args.type)
-    client.download(args.node, args.index, args.subindex, data)
-    print(f"wrote {_hex(data)} to node {args.node} 0x{args.index:04X}/0x{args.subindex:02X}")
-    return 0
-
-
-def _scan(args: argparse.Namespace, client: EposClient) -> int:
-    found = client.scan(args.nodes, timeout=args.node_timeout)
-    for info in found:
-        if args.json:
-            print(json.dumps(info.as_dict()))
-            continue
-        ids = " ".join(f"{k}=0x{v:08X}" for k, v in (
-            ("vendor", info.vendor_id), ("product", info.product_code),
-            ("revision", info.revision), ("serial", info.serial_number)) if v is not None)
-        name = json.dumps(info.name) if info.name is not None else "-"
-        print(f"node {info.node:3d}  type=0x{info.device_type:08X}  name={name}  {ids}".rstrip())
-    if not found:
-        print(f"epos-link scan: no node answered on {args.url}", file=sys.stderr)
-        return 2
+    if len(args.rest) > 2:
+        raise LocalProtocolError(f"expected [SUBINDEX] VALUE, got {len(args.rest)} words: "
+                                 f"quote a value with spaces")
+    subindex_text = args.rest[0] if len(args.rest) == 2 else None
+    target = resolve_target(args, subindex_text)
+    typ = target.type
+    data = typ.encode(typ.parse(args.rest[-1]))
+    client.download(target.node, target.index, target.subindex, data)
+    print(f"wrote {typ.name} {typ.format(typ.decode(data))} [{_hex(data)}] to {target.describe()}")
     return 0
 
 
@@ -174,7 +196,6 @@ COMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None],
                           Callable[[argparse.Namespace, EposClient], int]]] = {
     "read": (_add_read, _read),
     "write": (_add_write, _write),
-    "scan": (_add_scan, _scan),
     "nmt": (_add_nmt, _nmt),
 }
 
@@ -198,4 +219,4 @@ def run(args: argparse.Namespace) -> int:
     return guarded(prog, body)
 
 
-__all__ = ["COMMANDS", "INT_TYPES", "TYPES", "add_arguments", "decode_value", "encode_value", "run"]
+__all__ = ["COMMANDS", "Target", "add_arguments", "read_value", "resolve_target", "run"]

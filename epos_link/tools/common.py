@@ -90,13 +90,22 @@ def add_link_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--gateway-id", type=parse_int, default=None, metavar="NODE",
                        help="the connected EPOS4's own node id (allows segmented writes to it)")
     group.add_argument("--trace", metavar="FILE",
-                       help="record the traffic to FILE (capture format; replay with replay://FILE)")
+                       help="record the traffic to FILE, - for standard output "
+                       "(capture format; replay with replay://FILE)")
 
 
 def open_client(args: argparse.Namespace) -> EposClient:
-    return EposClient.open(args.url, trace=args.trace, baudrate=args.baud,
-                           gateway_node_id=args.gateway_id, timeout=args.timeout,
-                           retries=args.retries)
+    """The client of the link options; ``--trace -`` traces to standard output."""
+    to_stdout = args.trace == "-"
+    client = EposClient.open(args.url, trace=None if to_stdout else args.trace, baudrate=args.baud,
+                             gateway_node_id=args.gateway_id, timeout=args.timeout,
+                             retries=args.retries)
+    if to_stdout:
+        from ..transports.trace import TracingTransport
+
+        client.transport = TracingTransport(client.transport, sys.stdout,
+                                            comments=[f"source: epos-link trace of {args.url}"])
+    return client
 
 
 def report(prog: str, exc: BaseException) -> int:

@@ -3,6 +3,11 @@
 Hex comes from the arguments (with or without spaces, in one or several
 arguments) or from standard input; ``--file`` (or a single argument naming an
 existing file) reads a capture in the format of :mod:`epos_link.capture`.
+Standard input is decoded line by line as it arrives (a capture or hex), and
+``--follow FILE`` decodes a capture that is still growing
+(:mod:`epos_link.tools.follow`, bounded waits, ``--idle-exit``). Captures are
+decoded with names and values from the object dictionary
+(:mod:`epos_link.tools.frames`).
 Every frame gives one line; a frame with a bad CRC is still decoded and marked;
 bytes that are not a frame are reported, never dropped.
 """
@@ -15,10 +20,10 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Iterator, Optional
 
-from ..capture import Capture, CaptureFormatError, Direction, parse_hex, read_capture
+from ..capture import Capture, CaptureFormatError, Direction, Record, parse_hex, parse_line
 from ..codes import describe_error, opcode_name, OpCode
-from ..errors import CrcError, RemoteProtocolError
-from ..framing import NEED_DATA, Frame, FrameDecoder
+from ..errors import CrcError, EposError, RemoteProtocolError
+from ..framing import NEED_DATA, Frame, FrameDecoder, encode_frame
 from ..messages import (
     InitiateSegmentedReadAnswer,
     InitiateSegmentedWrite,
@@ -155,12 +160,15 @@ class StreamDecoder:
                 if item is NEED_DATA:
                     return
                 line, req = describe_frame(item, self.direction, pair.request_for(self.direction))  # type: ignore[arg-type]
+                # Stuffing is deterministic: a good frame's wire bytes are its encoding.
+                line.raw = encode_frame(item.opcode, item.data)  # type: ignore[union-attr]
                 pair.update(self.direction, req)
                 yield line
             except CrcError as exc:
                 frame = exc.frame
                 assert isinstance(frame, Frame)
                 line, req = describe_frame(frame, self.direction, pair.request_for(self.direction))
+                line.raw = exc.raw
                 pair.update(self.direction, req)
                 yield line
             except RemoteProtocolError as exc:
@@ -210,44 +218,135 @@ def decode_bytes(data: bytes, *, responses: bool = False) -> Iterator[Decoded]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from .common import positive_float  # the link helpers, not needed to decode
+
     parser.add_argument("hex", nargs="*", help="frame bytes in hex (spaces optional); "
-                        "omit to read hex from standard input")
+                        "omit to read hex or a capture from standard input, decoded as it arrives")
     parser.add_argument("-f", "--file", help="a capture file (epos-link capture format)")
+    parser.add_argument("--follow", metavar="FILE",
+                        help="decode a capture file and then what is appended to it, as tail -F")
+    parser.add_argument("--idle-exit", type=positive_float, metavar="SECONDS",
+                        help="with --follow or standard input: stop after SECONDS without new bytes")
     parser.add_argument("--responses", action="store_true",
                         help="decode the frames as answers (device to host)")
+    parser.add_argument("--eds", metavar="FILE",
+                        help="object dictionary for names and values (default: the shipped EPOS4 EDS)")
     parser.add_argument("--json", action="store_true", help="one JSON object per frame")
 
 
-def _load(args: argparse.Namespace) -> Iterator[Decoded]:
-    if args.file:
-        with open(args.file, encoding="utf-8") as fh:
-            return decode_capture(read_capture(fh))
-    if len(args.hex) == 1 and os.path.isfile(args.hex[0]):
-        with open(args.hex[0], encoding="utf-8") as fh:
-            return decode_capture(read_capture(fh))
-    text = " ".join(args.hex) if args.hex else sys.stdin.read()
-    if any(line.split()[1:2] in (["TX"], ["RX"]) for line in text.splitlines()):
-        return decode_capture(read_capture(text))
-    return decode_bytes(parse_hex(text), responses=args.responses)
+class LineDecoder:
+    """Decodes lines of text: a capture (``TIME TX|RX HEX``) or plain hex, told
+    apart by the first line that is neither blank nor a comment."""
+
+    def __init__(self, eds: Optional[str], responses: bool) -> None:
+        self.eds = eds
+        self.responses = responses
+        self.restart()
+
+    def restart(self) -> None:
+        self.mode: Optional[str] = None
+        self.link: Optional[Any] = None
+        self.stream = StreamDecoder(Direction.RX.value if self.responses else None)
+        self.pair = Pairing()
+        self.last_time = 0.0
+        self.lineno = 0
+
+    def line(self, text: str) -> Iterator[Any]:
+        self.lineno += 1
+        body = text.split("#", 1)[0].strip()
+        if not body:
+            return
+        if self.mode is None:
+            self.mode = "capture" if body.split()[1:2] in (["TX"], ["RX"], ["tx"], ["rx"]) else "hex"
+            if self.mode == "capture":
+                from .frames import LinkDecoder
+                from .objects import load_directory
+
+                self.link = LinkDecoder(load_directory(self.eds))
+        if self.mode == "hex":
+            yield from self.stream.feed(parse_hex(body), self.pair)
+            return
+        record = parse_line(text, self.lineno)
+        if isinstance(record, Record):
+            self.last_time = record.time
+            yield from self.link.feed(record.time, record.direction, record.data)  # type: ignore[union-attr]
+
+    def close(self) -> Iterator[Any]:
+        if self.mode == "capture":
+            yield from self.link.close(self.last_time)  # type: ignore[union-attr]
+        elif self.mode == "hex":
+            yield from self.stream.close(self.pair)
+
+
+def _as_decoded(item: Any) -> Decoded:
+    return item if isinstance(item, Decoded) else item.decoded
+
+
+def _text(item: Any) -> str:
+    if isinstance(item, Decoded):
+        return item.as_text()
+    text = item.decoded.as_text()
+    if item.obj is not None:
+        text += f"  # {item.obj.name}" + (f" = {item.value_text}" if item.value_text is not None else "")
+    return text
+
+
+def _lines(args: argparse.Namespace) -> Iterator[Any]:
+    """The source of text lines the arguments name."""
+    from .follow import follow_file, stream_lines
+
+    if args.follow:
+        return follow_file(args.follow, idle_exit=args.idle_exit)
+    path = args.file or (args.hex[0] if len(args.hex) == 1 and os.path.isfile(args.hex[0]) else None)
+    if path:
+        return follow_file(path, idle_exit=0.0)  # a plain read to the end, line by line
+    if args.hex:
+        return iter(" ".join(args.hex).splitlines())
+    return stream_lines(sys.stdin.fileno(), idle_exit=args.idle_exit)
 
 
 def run(args: argparse.Namespace) -> int:
+    from .follow import RESTART
+
+    prog = "epos-link decode"
+    decoder = LineDecoder(args.eds, args.responses)
+    count = damaged = 0
+
+    def emit(item: Any) -> None:
+        nonlocal count, damaged
+        d = _as_decoded(item)
+        count += 1
+        damaged += bool(d.problem or d.crc_ok is False)
+        print(json.dumps(item.as_json()) if args.json else _text(item), flush=True)
+
     try:
-        lines = list(_load(args))
+        for line in _lines(args):
+            if line is RESTART:
+                print(f"{prog}: {args.follow} was truncated or replaced: decoding it from the start",
+                      file=sys.stderr)
+                for item in decoder.close():
+                    emit(item)
+                decoder.restart()
+                continue
+            for item in decoder.line(line):  # type: ignore[arg-type]
+                emit(item)
+        for item in decoder.close():
+            emit(item)
     except UnicodeDecodeError:
-        print("epos-link decode: the file is not text: a capture file is hex text "
+        print(f"{prog}: the input is not text: a capture file is hex text "
               "(see epos_link/capture.py)", file=sys.stderr)
         return 2
     except (OSError, CaptureFormatError) as exc:
-        print(f"epos-link decode: {exc}", file=sys.stderr)
+        print(f"{prog}: {exc}", file=sys.stderr)
         return 2
-    if not lines:
-        print("epos-link decode: no bytes to decode", file=sys.stderr)
+    except EposError as exc:  # a bad --eds
+        print(f"{prog}: {exc}", file=sys.stderr)
         return 2
-    for line in lines:
-        print(json.dumps(line.as_json()) if args.json else line.as_text())
-    damaged = any(line.problem or line.crc_ok is False for line in lines)
+    if not count:
+        print(f"{prog}: no bytes to decode", file=sys.stderr)
+        return 2
     return 1 if damaged else 0
 
 
-__all__ = ["Decoded", "decode_bytes", "decode_capture", "describe_frame", "add_arguments", "run"]
+__all__ = ["Decoded", "LineDecoder", "Pairing", "StreamDecoder", "decode_bytes", "decode_capture",
+           "describe_frame", "add_arguments", "run"]

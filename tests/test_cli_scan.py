@@ -1,0 +1,97 @@
+"""``epos-link scan``: nodes printed as they are found, progress on a terminal,
+--node-timeout honoured; against the simulator over TCP."""
+from __future__ import annotations
+
+import os
+import select
+import subprocess
+import sys
+from typing import Iterator
+
+import pytest
+
+from epos_link.simulator.core import Epos4Simulator
+from epos_link.simulator.link import LinkOptions, TcpLink
+
+WAIT = 60.0
+
+
+@pytest.fixture()
+def bus() -> Iterator[TcpLink]:
+    sim = Epos4Simulator(1, [2, 3])
+    link = TcpLink(sim).start()
+    try:
+        yield link
+    finally:
+        link.close()
+        sim.close()
+
+
+def test_nodes_are_printed_as_they_are_found(bus: TcpLink) -> None:
+    # Nodes 4..12 are absent: each costs the gateway's SDO timeout, so the scan is
+    # still busy with them when node 3's line must already be readable.
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "scan", bus.url, "--nodes", "1-3,4-12"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = []
+        for _ in range(3):
+            ready, _, _ = select.select([proc.stdout], [], [], WAIT)
+            assert ready
+            lines.append(proc.stdout.readline())  # type: ignore[union-attr]
+        still_running = proc.poll() is None
+        out, err = proc.communicate(timeout=WAIT)
+    finally:
+        proc.kill() if proc.poll() is None else None
+    assert [line.split()[1] for line in lines] == ["1", "2", "3"]
+    assert 'name="EPOS4"' in lines[0]
+    assert still_running, "the found nodes came only at the end"
+    assert proc.returncode == 0 and out == "" and "\r" not in err  # no progress line when not a terminal
+
+
+@pytest.mark.skipif(os.name != "posix", reason="needs a pseudo-terminal")
+def test_progress_on_a_terminal(bus: TcpLink) -> None:
+    master, slave = os.openpty()
+    try:
+        p = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", bus.url, "--nodes", "2,5"],
+                           stdout=subprocess.PIPE, stderr=slave, text=True, timeout=WAIT)
+        os.close(slave)
+        slave = -1
+        progress = b""
+        while select.select([master], [], [], 0.5)[0]:
+            try:
+                chunk = os.read(master, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            progress += chunk
+    finally:
+        os.close(master)
+        if slave >= 0:
+            os.close(slave)
+    assert p.returncode == 0 and p.stdout.startswith("node   2")
+    text = progress.decode(errors="replace")
+    assert "\rscanning node 2 (1/2), 0 found" in text and "scanning node 5 (2/2), 1 found" in text
+    assert "1 of 2 nodes answered in" in text
+
+
+def test_node_timeout_is_honoured() -> None:
+    """A device that answers after 0.3 s: found with --node-timeout 2, absent with 0.05."""
+    sim = Epos4Simulator(1, [])
+    link = TcpLink(sim, LinkOptions(delay=0.3)).start()
+    try:
+        slow = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", link.url, "--nodes", "1",
+                               "--node-timeout", "2", "--timeout", "2"], capture_output=True, text=True, timeout=WAIT)
+        fast = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", link.url, "--nodes", "1",
+                               "--node-timeout", "0.05"], capture_output=True, text=True, timeout=WAIT)
+    finally:
+        link.close()
+        sim.close()
+    assert slow.returncode == 0 and slow.stdout.startswith("node   1"), slow.stderr
+    assert fast.returncode == 2 and "no node answered" in fast.stderr
+
+
+def test_bad_node_list_is_a_usage_error() -> None:
+    p = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", "sim://", "--nodes", "1-200"],
+                       capture_output=True, text=True, timeout=WAIT)
+    assert p.returncode == 2 and "node ids are 0..127" in p.stderr and "Traceback" not in p.stderr
