@@ -22,21 +22,23 @@ state file is read (so that inversion and offset of S22/S25 apply to the
 position shown) and never written.
 
 Time: an absent node costs one SDO timeout (its first read), then the check
-moves on; one that answers costs about 14 uploads.
+moves on; one that answers costs a dozen uploads. Buses are checked one after
+the other, each closed before the next opens.
 """
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
-from typing import Any, Callable, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional
 
 from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
 
 from .axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
 from .errors import BridgeError, DeviceFailure
 from .parameters import ParameterStore
-from .preflight import AxisReport, Reading, as_json, judge, no_bus, no_drive, table
+from .preflight import AxisReport, Reading, as_json, judge, no_bus, no_drive
+from .preflight import table as format_table
 from .sdo import NodeSilent, SdoPort
 
 Opener = Callable[[BusConfig, List[AxisConfig]], Any]
@@ -99,18 +101,18 @@ def _why(exc: DeviceFailure) -> str:
     return str(exc).split(" failed: ", 1)[-1]
 
 
-def check(table_: AxisTable, *, opener: Optional[Opener] = None) -> List[AxisReport]:
-    """One report per axis of ``table_``, in AxAddr order. Reads only (module docstring)."""
+def check(axis_table: AxisTable, *, opener: Optional[Opener] = None) -> List[AxisReport]:
+    """One report per axis of ``axis_table``, in AxAddr order. Reads only (module docstring)."""
     if opener is None:
         from .backends import open_backend as opener
-    params = ParameterStore(table_)  # the state file's inversion/offset, read only
-    reports = {}
+    params = ParameterStore(axis_table)  # the state file's inversion/offset, read only
+    reports: Dict[int, AxisReport] = {}
     try:
-        for name, bus in table_.buses.items():
-            axes = [a for a in table_.axes.values() if a.bus == name and a.has_node]
+        for name, bus in axis_table.buses.items():
+            axes = [a for a in axis_table.axes.values() if a.bus == name and a.has_node]
             if axes:
                 reports.update(_check_bus(bus, axes, params, opener))
-        for addr, axis in table_.axes.items():
+        for addr, axis in axis_table.axes.items():
             if not axis.has_node:
                 reports[addr] = no_drive(axis)
     finally:
@@ -119,13 +121,13 @@ def check(table_: AxisTable, *, opener: Optional[Opener] = None) -> List[AxisRep
 
 
 def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
-               opener: Opener) -> dict:
+               opener: Opener) -> Dict[int, AxisReport]:
     try:
         backend = opener(bus, axes)
     except (ConfigError, OSError) as exc:
         return {a.addr: no_bus(a, str(exc)) for a in axes}
     try:
-        out = {}
+        out: Dict[int, AxisReport] = {}
         for axis in axes:
             port = SdoPort(backend.node(axis.node_id), name=f"axis {axis.addr}")
             out[axis.addr] = judge(axis, read_node(port, axis.device), params.scaling(axis.addr))
@@ -173,6 +175,6 @@ def run(args: argparse.Namespace, prog: str = "tcp-bridge check") -> int:
         for report in reports:
             print(as_json(report))
     else:
-        print(table(reports))
+        print(format_table(reports))
     return 0 if all(r.ok for r in reports) else 1
 

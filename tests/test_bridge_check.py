@@ -96,6 +96,12 @@ def test_a_detail_line_follows_each_axis_that_is_not_ok() -> None:
     assert len(lines) == 4 and lines[3].strip().startswith("node 2 on can1 did not answer")
 
 
+def test_the_verdict_rules_are_pure() -> None:
+    import tests.test_purity as purity
+
+    purity.test_pure_module_imports_no_io("tcp_bridge.preflight")
+
+
 # -- reading the simulator and fake drives ----------------------------------------------------
 
 

@@ -42,7 +42,7 @@ WRITE_TIMEOUT_MS = 1000
 _DRAIN_LIMIT = 64  # packets discarded at most by one reset_input
 
 # TAG+="uaccess": systemd-logind gives the user logged in at the seat access
-# (an ACL), no one else; MODE="0666" would give every local account the drive.
+# (an ACL), no one else; a world-writable mode would give every local account the drive.
 # Headless machines use a group instead (docs/hardware.md).
 UDEV_RULES_FILE = "/etc/udev/rules.d/70-epos4.rules"  # must sort before 73-seat-late.rules
 UDEV_RULE = 'SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", TAG+="uaccess"'
