@@ -223,7 +223,9 @@ def _send(args: argparse.Namespace) -> int:
         if not requests:
             return _fail("no request to send (every argument is empty)")
         for r in requests:
-            r.encode("ascii")
+            if not r.isascii():
+                return _fail(f"request {r!r} is not ASCII (the gateway's requests are ASCII, "
+                             "spec 2.2.1)")
         replies = send(args.address, requests, args.timeout)
     except (ValueError, UnicodeError) as exc:
         return _fail(str(exc))

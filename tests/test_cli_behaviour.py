@@ -132,6 +132,12 @@ def test_send_embedded_cr_or_lf_is_several_requests(bridge: Running,
                      f"3 R 99={bridge.engine.version} ACK", f"2 R 99={bridge.engine.version} ACK"]
 
 
+def test_send_refuses_a_request_that_is_not_ascii(capsys: pytest.CaptureFixture[str]) -> None:
+    assert bridge_cli.main(["send", "127.0.0.1:1", "1R10\u00e9"]) == 2
+    err = capsys.readouterr().err
+    assert "is not ASCII" in err and err.count("\n") == 1
+
+
 def test_send_of_nothing_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert bridge_cli.main(["send", "127.0.0.1:1", "\r\n"]) == 2
     assert "no request to send" in capsys.readouterr().err
@@ -189,6 +195,12 @@ def test_a_busy_usb_device_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
         open_usb("usb://?serial=A1", find=Finder(dev), backend=object())
     text = str(info.value)
     assert text.count("usb://?serial=A1") == 1 and "busy" in text
+
+
+def test_sim_trace_that_cannot_be_written_is_named_once(tmp_path: Path) -> None:
+    path = str(tmp_path / "missing-dir" / "trace.txt")
+    line = one_line_exit_2(run("-m", "epos_link", "sim", "--tcp", "127.0.0.1:0", "--trace", path))
+    assert line.count(path) == 1 and "No such file or directory" in line
 
 
 def test_sim_port_in_use_is_named_once() -> None:

@@ -100,15 +100,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
+    conflict = own_id_conflict(args.node_id, args.drives)
+    if conflict:
+        print(f"epos-link sim: {conflict}", file=sys.stderr)
+        return 2
     from .. import simulator  # noqa: F401  (import cost only for this command)
     from ..simulator.core import Epos4Simulator
     from ..capture import CaptureWriter
     from ..simulator.link import LinkOptions, PtyLink, TcpLink
 
-    conflict = own_id_conflict(args.node_id, args.drives)
-    if conflict:
-        print(f"epos-link sim: {conflict}", file=sys.stderr)
-        return 2
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(message)s")
     if not args.verbose:
@@ -122,7 +122,8 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         try:
             trace_file = open(args.trace, "w", encoding="utf-8")
         except OSError as exc:
-            print(f"epos-link sim: cannot write the trace: {exc}", file=sys.stderr)
+            print(f"epos-link sim: cannot write the trace {args.trace}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
             return 2
         trace = CaptureWriter(trace_file, comments=["source: epos-link sim (simulated EPOS4), "
                                                     "TX host to device, RX device to host"])
