@@ -28,6 +28,18 @@ def _host_port(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def own_id_conflict(node_id: int, drives: list[int]) -> Optional[str]:
+    """Why ``drives`` cannot sit behind an EPOS4 with ``node_id``, or None.
+
+    The gateway executes requests for its own id itself (guide chapter 5), so a
+    drive with that id could never be reached: refused rather than dropped.
+    """
+    if node_id in drives:
+        return (f"--drives {','.join(map(str, drives))}: {node_id} is the simulated EPOS4's own "
+                f"node id (--node-id {node_id}); the drives behind its gateway need other ids")
+    return None
+
+
 def _probability(text: str) -> float:
     value = parse_float(text)
     if not 0.0 <= value <= 1.0:
@@ -62,18 +74,6 @@ def _node_list(text: str) -> list[int]:
         # set: 600h/580h + node id), so neither could be asked alone.
         raise argparse.ArgumentTypeError(f"node id {twice[0]} appears twice; each drive needs its own")
     return nodes
-
-
-def own_id_conflict(node_id: int, drives: list[int]) -> Optional[str]:
-    """Why ``drives`` cannot sit behind an EPOS4 with ``node_id``, or None.
-
-    The gateway executes requests for its own id itself (guide chapter 5), so a
-    drive with that id could never be reached: refused rather than dropped.
-    """
-    if node_id in drives:
-        return (f"--drives {','.join(map(str, drives))}: {node_id} is the simulated EPOS4's own "
-                f"node id (--node-id {node_id}); the drives behind its gateway need other ids")
-    return None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
