@@ -25,7 +25,7 @@ from epos_link import cli as epos_cli
 from epos_link.client import EposClient
 from epos_link.errors import TransportError
 from epos_link.simulator.core import Epos4Simulator
-from epos_link.simulator.link import BUSY_MESSAGE, TcpLink
+from epos_link.simulator.link import TcpLink
 from epos_link.transports import usb as usb_transport
 from epos_link.transports.serial import open_serial
 from epos_link.transports.usb import open_usb
@@ -275,7 +275,7 @@ def test_a_second_host_of_sim_tcp_is_refused_with_a_message() -> None:
                     if not chunk:
                         break
                     received += chunk
-            assert received == BUSY_MESSAGE
+            assert received == TcpLink.BUSY_MESSAGE
             assert b"one host at a time" in received
             second = EposClient.open(link.url, timeout=0.2, retries=0)
             try:

@@ -3,8 +3,7 @@
 The device logic is pure (:mod:`.device`); this module adds what a real link
 has: timing (a baud rate, the device's frame timeout of guide 2.2.7) and
 faults (dropped, corrupted or delayed reply bytes, silence, disconnects).
-One host at a time, like the real device: a second TCP host is told so and
-closed (:meth:`TcpLink._refuse`).
+One host at a time, like the real device.
 """
 from __future__ import annotations
 
@@ -24,11 +23,6 @@ from ..capture import CaptureWriter
 log = logging.getLogger(__name__)
 
 BITS_PER_BYTE = 10  # 8N1: start, 8 data, stop (guide 2.2.6)
-# What a second TCP host reads before the simulator closes its connection. Not
-# a frame (no DLE STX), so a MAXON SERIAL V2 client discards it as junk and
-# then sees the connection closed; a person with nc or telnet reads it.
-BUSY_MESSAGE = (b"epos-link sim: busy: another host is connected; this simulated EPOS4 "
-                b"serves one host at a time\r\n")
 
 
 class Device(Protocol):
@@ -218,7 +212,17 @@ class PtyLink:
 
 
 class TcpLink:
-    """A TCP listener, one host at a time: reach it with ``socket://HOST:PORT``."""
+    """A TCP listener, one host at a time: reach it with ``socket://HOST:PORT``.
+
+    A second host while one is served is told so in one line and closed
+    (:meth:`_refuse`), instead of waiting in the listen backlog unanswered.
+    """
+
+    # What a second host reads before its connection is closed. Not a frame (no
+    # DLE STX), so a MAXON SERIAL V2 client discards it as junk and then sees the
+    # connection closed; a person with nc or telnet reads it.
+    BUSY_MESSAGE = (b"epos-link sim: busy: another host is connected; this simulated EPOS4 "
+                    b"serves one host at a time\r\n")
 
     def __init__(self, device: Device, options: Optional[LinkOptions] = None,
                  host: str = "127.0.0.1", port: int = 0,
@@ -279,7 +283,7 @@ class TcpLink:
             log.warning("refused a second host %s:%s while one is connected (one host at a time)",
                         *peer[:2])
             try:
-                other.sendall(BUSY_MESSAGE)
+                other.sendall(self.BUSY_MESSAGE)
             except OSError:
                 pass
 
