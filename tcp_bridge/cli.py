@@ -29,7 +29,7 @@ import signal
 import socket
 import sys
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence
 
 from .axes import AxisTable, ConfigError, Settings, simulated_table
 from .errors import BridgeError, MalformedReply
@@ -168,7 +168,7 @@ def describe(reply: Reply) -> str:
     return f"{head}{value} {reply.status.name}"
 
 
-def _address(text: str) -> Tuple[str, int]:
+def _address(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit():
         raise ValueError(f"expected HOST:PORT, not {text!r}")
