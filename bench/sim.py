@@ -1,4 +1,4 @@
-"""Simulator throughput and memory: ``python bench/sim.py [--runs 5] [-n 20000]``.
+"""Simulator throughput and memory: ``python bench/sim.py [--runs 5] [-n 20000] [--paced-only]``.
 
 1. ReadObject requests/s served over the in-process ``sim://`` transport, raw
    frames (the simulator's own cost) and through ``EposClient`` (the full stack);
@@ -7,6 +7,9 @@
    checkpoints; it must stay flat (no growth with the request count).
 3. Fault injection: 1,000 reads with 5% of reply bytes corrupted, and the
    retries the client needed.
+4. ``--baud`` pacing: ReadObject/s through EposClient over a pty paced at
+   115200 baud, as a fraction of the rate the wire allows (request and answer
+   bytes at 10 bits each); medians of several runs.
 """
 from __future__ import annotations
 
@@ -73,12 +76,40 @@ def faults(reads: int, corrupt: float) -> None:
           f"{stats.retries} retries ({stats.retries / reads:.2f} per read); causes {stats.failures}")
 
 
+def paced(baud: int, reads: int, runs: int) -> None:
+    from epos_link.messages import ReadObjectAnswer
+    from epos_link.simulator.link import BITS_PER_BYTE, LinkOptions, PtyLink
+
+    wire_bytes = len(ReadObject(0, 0x6041, 0).encode()) + len(ReadObjectAnswer(0, bytes(4)).encode())
+    wire_rate = baud / BITS_PER_BYTE / wire_bytes
+    rates = []
+    with Epos4Simulator(1) as sim:
+        link = PtyLink(sim, LinkOptions(baud=baud)).start()
+        try:
+            with EposClient.open(link.path, timeout=0.5) as client:
+                for _ in range(runs):
+                    t0 = time.perf_counter()
+                    for _ in range(reads):
+                        client.read_object(0, 0x6041, 0)
+                    rates.append(reads / (time.perf_counter() - t0))
+        finally:
+            link.close()
+    rate = statistics.median(rates)
+    print(f"ReadObject over a pty paced at {baud} baud, median of {runs} runs of {reads}: "
+          f"{rate:.0f}/s; the wire allows {wire_rate:.0f}/s ({wire_bytes} bytes of 10 bits): "
+          f"{rate / wire_rate:.0%}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("-n", type=int, default=20000)
     ap.add_argument("--memory-requests", type=int, default=100000)
+    ap.add_argument("--paced-only", action="store_true", help="only part 4, the --baud pacing")
     args = ap.parse_args()
+    if args.paced_only:
+        paced(115200, 500, args.runs)
+        return
     with Epos4Simulator(1) as sim:
         raw = statistics.median(raw_rate(sim, args.n) for _ in range(args.runs))
         full = statistics.median(client_rate(sim, args.n) for _ in range(args.runs))
@@ -93,6 +124,7 @@ def main() -> None:
         growth = points[-1][1] - points[1][1]
         print(f"  growth from {points[1][0]} to {points[-1][0]} requests: {growth / 1024:+.1f} KiB")
     faults(1000, 0.05)
+    paced(115200, 500, args.runs)
 
 
 if __name__ == "__main__":

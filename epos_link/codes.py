@@ -145,3 +145,62 @@ def describe_error(code: int) -> str:
     """The name of an error code, or the code in hex when it is unknown."""
     info = error_info(code)
     return info.name if info else f"Unknown error 0x{code:08X}"
+
+
+# Device error codes (603Fh, 1003h) of the EPOS4, with the names of the EPOS4
+# Firmware Specification's error table (section 7.2), as transcribed in public
+# EPOS4 code. Not the communication errors above: these say why a drive is in
+# FAULT. The simulator's injectable faults use 0x8611 and 0x8A80..0x8A88.
+DEVICE_ERRORS: dict[int, str] = {
+    0x0000: "No error",
+    0x1000: "Generic error",
+    0x1090: "Firmware incompatibility error",
+    0x2310: "Overcurrent error",
+    0x2320: "Power stage protection error",
+    0x3210: "Overvoltage error",
+    0x3220: "Undervoltage error",
+    0x4210: "Thermal overload error",
+    0x4380: "Thermal motor overload error",
+    0x5113: "Logic supply voltage too low error",
+    0x5280: "Hardware defect error",
+    0x5281: "Hardware incompatibility error",
+    0x6080: "Sign of life error",
+    0x6081: "Extension 1 watchdog error",
+    0x6320: "Software parameter error",
+    0x6380: "Persistent parameter corrupt error",
+    0x7320: "Position sensor error",
+    0x7380: "Position sensor breach error",
+    0x7381: "Position sensor resolution error",
+    0x7382: "Position sensor index error",
+    0x7388: "Hall sensor error",
+    0x7389: "Hall sensor not found error",
+    0x738A: "Hall angle detection error",
+    0x738C: "SSI sensor error",
+    0x7390: "Missing main sensor error",
+    0x7391: "Missing commutation sensor error",
+    0x7392: "Main sensor direction error",
+    0x8110: "CAN overrun error (object lost)",
+    0x8111: "CAN overrun error",
+    0x8120: "CAN passive mode error",
+    0x8130: "CAN heartbeat error",
+    0x8150: "CAN PDO COB-ID collision",
+    0x81FD: "CAN bus turned off",
+    0x81FE: "CAN Rx queue overflow",
+    0x81FF: "CAN Tx queue overflow",
+    0x8210: "CAN PDO length error",
+    0x8250: "RPDO timeout",
+    0x8611: "Following error",
+    0x8A80: "Negative limit switch error",
+    0x8A81: "Positive limit switch error",
+    0x8A82: "Software position limit error",
+    0x8A88: "STO error",
+    0xFF01: "System overloaded error",
+    0xFF02: "Watchdog error",
+    0xFF0B: "System peak overloaded error",
+    0xFF10: "Controller gain error",
+}
+
+
+def describe_device_error(code: int) -> str:
+    """The EPOS4 name of a 603Fh error code, or the code in hex when it is unknown."""
+    return DEVICE_ERRORS.get(code, f"Unknown device error 0x{code:04X}")

@@ -180,8 +180,9 @@ class SimBridge:
             for sim in sims:
                 sim.lock.release()
 
-    def velocity(self, node: int) -> int:
-        return int(self.now(node).velocity)
+    def velocity(self, node: int) -> float:
+        """The axis velocity in increments per second (606Ch is in rpm on an EPOS4)."""
+        return float(self.now(node).velocity_increments)
 
     def wait_until(self, what: Callable[[], bool], timeout: float = 10.0, why: str = "") -> None:
         deadline = time.monotonic() + timeout

@@ -34,6 +34,11 @@ def power_ups(b: SimBridge, node: int) -> int:
     return sum(1 for _, number, _ in b.drive(node).history if number == 0)
 
 
+def starts(b: SimBridge, node: int) -> int:
+    """Motion starts the simulated drive accepted (set-points, velocity goals, homings)."""
+    return int(b.now(node).motion_starts)
+
+
 def transitions_since(b: SimBridge, node: int, t: float) -> List[int]:
     return [number for when, number, _ in b.drive(node).history if when >= t]
 
@@ -56,8 +61,9 @@ def test_a_lost_answer_never_makes_enable_reset_a_moving_drive(bridge: SimBridge
     # ... and the routine enable that follows leaves the moving drive alone.
     b.ok("2S04=1")
     time.sleep(0.1)
-    assert power_ups(b, 2) == resets
+    assert power_ups(b, 2) == resets and b.now(2).resets_while_moving == 0
     assert b.now(2).state is State.OPERATION_ENABLED and b.velocity(2) > 0
+    assert starts(b, 2) == 1 and not b.now(2).unsafe_stops
 
 
 def test_a_bridge_restart_never_resets_a_moving_drive(bridge: SimBridge) -> None:
@@ -67,8 +73,8 @@ def test_a_bridge_restart_never_resets_a_moving_drive(bridge: SimBridge) -> None
     b.restart()
     b.ok("2S04=1")  # what a client sends after it reconnects
     time.sleep(0.1)
-    assert power_ups(b, 2) == resets
-    assert b.velocity(2) > 0
+    assert power_ups(b, 2) == resets and b.now(2).resets_while_moving == 0
+    assert b.velocity(2) > 0 and starts(b, 2) == 1
 
 
 # --- finding 2: a stopped velocity move restarts by itself ----------------------------------
@@ -86,8 +92,10 @@ def test_a_stopped_velocity_move_stays_stopped(bridge: SimBridge, then: List[str
     stopped = b.position(2)
     time.sleep(0.3)
     assert b.velocity(2) == 0 and b.position(2) == stopped, "the axis moved without a move command"
-    b.ok("2S00=3")  # the next move command does move it
+    assert starts(b, 2) == 1
+    b.ok("2S00=3")  # the next move command does move it, once
     b.wait_until(lambda: b.velocity(2) > 0)
+    assert starts(b, 2) == 2
 
 
 # --- finding 3: disable cuts the power of a moving axis ----------------------------------------
@@ -104,6 +112,7 @@ def test_disable_during_a_move_brings_the_axis_to_rest_first(bridge: SimBridge) 
     # shutdown straight from OPERATION ENABLED, which cuts an EPOS4's drive function.
     assert 8 not in steps and steps[:2] == [5, 6], steps
     assert b.velocity(2) == 0
+    assert not b.now(2).unsafe_stops  # the power stage never went off while it moved
 
 
 # --- finding 5: a move that started is answered NAK ---------------------------------------------
@@ -115,6 +124,7 @@ def test_a_move_whose_start_answer_is_lost_is_ack_and_moves_once(
     b = bridge
     b.ok("2S04=1", "2S05=20", "2S06=200", "2S86=0", f"2S02={target}")
     start = b.position(2) / FACTOR
+    before = starts(b, 2)
     # The write that starts the move (controlword bit 4) and the client's retry
     # of it are executed by the drive, but both answers are lost.
     b.transport.lose_answers(controlword_write(2, bits=0x10), 2)
@@ -124,6 +134,7 @@ def test_a_move_whose_start_answer_is_lost_is_ack_and_moves_once(
     b.poll("2R82", "1")
     time.sleep(0.1)
     assert b.position(2) / FACTOR == pytest.approx(start + expected if how == "2" else expected)
+    assert starts(b, 2) == before + 1  # moved exactly once
 
 
 def test_a_move_that_could_not_start_is_nak_and_nothing_moves(bridge: SimBridge) -> None:
@@ -134,7 +145,7 @@ def test_a_move_that_could_not_start_is_nak_and_nothing_moves(bridge: SimBridge)
     assert b.ask("2S00=1").status is Status.NAK
     assert b.ok("2R86") == "0"
     time.sleep(0.2)
-    assert b.position(2) == 0
+    assert b.position(2) == 0 and starts(b, 2) == 0
 
 
 # --- finding 6: a real power loss between polls goes unnoticed -----------------------------------
@@ -145,11 +156,21 @@ def test_a_power_cycle_between_polls_makes_enable_write_the_parameters_back(
     b = bridge
     b.ok("2S04=1", "2S05=7", "2S06=70")
     held = b.sim.drives[2].store.get_int(0x6081)
-    b.sim.drives[2].nmt(0x81)  # power lost and back: saved parameters, SWITCH ON DISABLED
+    b.sim.power_cycle(2)  # power lost and back: saved parameters, SWITCH ON DISABLED
     assert b.sim.drives[2].store.get_int(0x6081) != held
     b.ok("2S04=1")  # no poll in between
     assert b.sim.drives[2].store.get_int(0x6081) == held
     assert b.ok("2R04") == "1"
+
+
+def test_a_power_cycle_seen_by_a_poll_is_restored_too(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S05=7")
+    held = b.sim.drives[2].store.get_int(0x6081)
+    b.sim.power_cycle(2)
+    assert int(b.ok("2R10")) & 0x4F == 0x40  # a poll sees SWITCH ON DISABLED
+    b.ok("2S04=1")
+    assert b.sim.drives[2].store.get_int(0x6081) == held
 
 
 # --- finding 7: every read is a segmented read ------------------------------------------------
@@ -167,12 +188,29 @@ def test_a_status_poll_is_one_read_object(bridge: SimBridge, axis: int) -> None:
 # --- finding 8: wrong error codes and bits --------------------------------------------------------
 
 
-def test_a_limit_switch_fault_is_an_end_switch_hit(bridge: SimBridge) -> None:
+@pytest.mark.parametrize("fault,r83,r11", [
+    ("limit_positive", "1", 1 << 6),  # 8A81h; spec 4.b bit 6: positive limit switch
+    ("limit_negative", "1", 1 << 7),  # 8A80h; bit 7: negative limit switch
+    ("sto", "0", 1 << 15),  # 8A88h; bit 15: STO, not a limit switch
+    ("following_error", "0", 1 << 3),  # 8611h
+])
+def test_faults_are_named_by_their_epos4_codes(bridge: SimBridge, fault: str, r83: str,
+                                               r11: int) -> None:
     b = bridge
     b.ok("2S04=1")
-    b.drive(2).inject_fault("limit_positive")
-    assert b.ok("2R83") == "1"
-    assert int(b.ok("2R11")) == 1 << 6  # spec 4.b bit 6: positive limit switch
+    with b.sim.drives[2].lock:
+        b.drive(2).inject_fault(fault)
+    assert b.ok("2R84") == "1"
+    assert b.ok("2R83") == r83
+    assert int(b.ok("2R11")) == r11
+
+
+def test_a_software_limit_error_names_its_side(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S23=1", "2S24=-1")  # 607Dh: -1 .. 1 mm
+    with b.sim.drives[2].lock:
+        b.drive(2).inject_fault("software_limit")
+    assert int(b.ok("2R11")) in (1 << 8, 1 << 9)
 
 
 def test_velocity_limiting_is_not_an_end_switch_hit(bridge: SimBridge) -> None:
@@ -181,6 +219,20 @@ def test_velocity_limiting_is_not_an_end_switch_hit(bridge: SimBridge) -> None:
     run_velocity_move(b, 2, speed="5")
     b.wait_until(lambda: int(b.ok("2R10")) & (1 << 11) != 0, why="no internal limit shown")
     assert b.ok("2R83") == "0"
+
+
+def test_an_epos4_axis_is_driven_in_rpm(bridge: SimBridge) -> None:
+    b = bridge
+    ipr = b.sim.increments_per_revolution(2)
+    b.ok("2S04=1", "2S05=10", "2S06=100")
+    # 10 mm/s = 10000 inc/s = 10000 * 60 / ipr rpm; before: 10000 "rpm"
+    assert b.sim.drives[2].store.get_int(0x6081) == round(10 * FACTOR * 60 / ipr)
+    assert b.sim.drives[2].store.get_int(0x6083) == round(100 * FACTOR * 60 / ipr)
+    b.ok("2S00=3")
+    b.poll("2R82", "0")
+    b.wait_until(lambda: abs(b.velocity(2) - 10 * FACTOR) < 0.02 * 10 * FACTOR,
+                 why="not running at 10000 inc/s")
+    assert float(b.ok("2R05")) == 10
 
 
 def test_r14_is_in_user_units(bridge: SimBridge) -> None:

@@ -130,7 +130,12 @@ def test_phys_bits_desc(node: canopen.RemoteNode) -> None:
     assert node.sdo["Modes of operation"].desc == "Profile Position Mode"
     node.sdo[0x6060].desc = "Homing Mode"
     assert node.sdo[0x6060].raw == 6
-    assert node.sdo["Statusword"].bits[9] == 1  # remote
+    # Statusword bit 9 (remote) = NMT Operational (guide Table 3-13, footnote 3).
+    node.nmt.state = "OPERATIONAL"
+    deadline = time.monotonic() + 5.0  # the NMT frame reaches the drive on the bus thread
+    while node.sdo["Statusword"].bits[9] != 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert node.sdo["Statusword"].bits[9] == 1
     assert node.sdo[0x6081].phys == node.sdo[0x6081].raw  # factor 1 in our EDS
 
 

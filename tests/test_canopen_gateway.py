@@ -41,7 +41,8 @@ def test_nmt_state_tells_the_truth_after_sdo_answers(client: EposClient) -> None
     again = canopen_adapter.connect_node(client, 2)  # the view belongs to the link
     assert again.nmt.state == "PRE-OPERATIONAL"
     node.nmt.state = "STOPPED"
-    node.sdo["Statusword"].raw  # the simulator answers anyway; the command decides
+    with pytest.raises(canopen.SdoAbortedError):  # a stopped node answers no SDO (Table 3-13)
+        node.sdo["Statusword"].raw
     assert again.nmt.state == "STOPPED"
     node.nmt.state = "RESET"
     assert node.nmt.state == "INITIALISING"

@@ -9,7 +9,10 @@ import pytest
 PURE = [
     "epos_link.errors", "epos_link.codes", "epos_link.crc", "epos_link.framing",
     "epos_link.messages", "epos_link.capture", "epos_link.segmented", "epos_link.cia402",
-    "epos_link.simulator.device", "epos_link.tools.decode", "epos_link.tools.pcapng",
+    "epos_link.simulator.device", "epos_link.simulator.units", "epos_link.simulator.safety",
+    "epos_link.simulator.faults", "epos_link.simulator.homing", "epos_link.simulator.nmt",
+    "epos_link.simulator.clock", "epos_link.simulator.motion",
+    "epos_link.tools.decode", "epos_link.tools.pcapng",
     "tcp_bridge.protocol", "tcp_bridge.commands", "tcp_bridge.units",
 ]
 FORBIDDEN = ["serial", "usb", "socket", "asyncio", "threading", "time", "select", "can", "canopen"]

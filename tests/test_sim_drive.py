@@ -1,11 +1,15 @@
 """The CiA 402 drive model, its state machine and its motion profiles, in virtual time.
 
 Expected statuswords are built from the state coding table of CiA 402-2
-6.4.1.4 plus bit 9 (remote) and bit 4 (voltage enabled, here: power stage
-on), never read back from the model. Expected move times are worked out by
-hand from the trapezoid formulas with the EDS defaults: profile velocity
-1000 inc/s, acceleration and deceleration 10000 inc/s^2, quick stop
-deceleration 50000 inc/s^2.
+6.4.1.4 plus bit 4 (voltage enabled, here: power stage on), never read back
+from the model; bit 9 (remote) is 0: a drive alone is never NMT Operational.
+
+Units: the drives of this module have a 15-pulse encoder, 60 increments per
+revolution, so that 1 rpm = 1 inc/s and 1 rpm/s = 1 inc/s^2 and the
+kinematics below can be worked out by hand in increments. Expected move
+times use the EDS defaults: profile velocity 1000 rpm, acceleration and
+deceleration 10000 rpm/s; quick stop deceleration is set to 50000 rpm/s.
+The EPOS4 default units themselves are tested in test_sim_units.py.
 """
 from __future__ import annotations
 
@@ -25,6 +29,8 @@ from epos_link.cia402 import (
     state_from_statusword,
 )
 from epos_link.simulator.drive import FAULTS, Drive, Mode, VirtualClock
+from epos_link.simulator.homing import VirtualSwitches
+from epos_link.simulator.safety import EventKind
 from epos_link.simulator.motion import Kind, plan_position, plan_stop, plan_velocity
 from epos_link.simulator.od import ObjectStore, load_object_dictionary
 
@@ -39,12 +45,15 @@ TARGET_REACHED, INTERNAL_LIMIT, BIT12, BIT13, REFERENCED = 0x0400, 0x0800, 0x100
 EPS = 1e-9
 
 
-def make(**kwargs: object) -> Drive:
-    return Drive(ObjectStore(OD), **kwargs)  # type: ignore[arg-type]
-
-
 def write(d: Drive, index: int, value: int, sub: int = 0) -> None:
     d.store.write_value(index, sub, value)
+
+
+def make(**kwargs: object) -> Drive:
+    d = Drive(ObjectStore(OD), **kwargs)  # type: ignore[arg-type]
+    write(d, 0x3010, 15, 1)  # 15 pulses: 60 inc/rev, 1 rpm = 1 inc/s (module docstring)
+    write(d, 0x6085, 50000)
+    return d
 
 
 def read(d: Drive, index: int, sub: int = 0) -> object:
@@ -122,12 +131,12 @@ def test_every_commanded_transition_number_is_in_the_table() -> None:
 
 
 @pytest.mark.parametrize(("state", "statusword"), [
-    (State.SWITCH_ON_DISABLED, 0x0240),  # x1xx 0000
-    (State.READY_TO_SWITCH_ON, 0x0221),  # x01x 0001
-    (State.SWITCHED_ON, 0x0223),  # x01x 0011
-    (State.OPERATION_ENABLED, 0x0237),  # x01x 0111, voltage enabled, target not reached
-    (State.QUICK_STOP_ACTIVE, 0x0617),  # x00x 0111, stopped: bit 10 (option 6)
-    (State.FAULT, 0x0A08),  # x0xx 1000, negative limit switch: internal limit active
+    (State.SWITCH_ON_DISABLED, 0x0040),  # x1xx 0000
+    (State.READY_TO_SWITCH_ON, 0x0021),  # x01x 0001
+    (State.SWITCHED_ON, 0x0023),  # x01x 0011
+    (State.OPERATION_ENABLED, 0x0037),  # x01x 0111, voltage enabled, target not reached
+    (State.QUICK_STOP_ACTIVE, 0x0417),  # x00x 0111, stopped: bit 10 (option 6)
+    (State.FAULT, 0x0808),  # x0xx 1000, negative limit switch: internal limit active
 ])
 def test_statusword_per_state(state: State, statusword: int) -> None:
     d = make()
@@ -140,20 +149,21 @@ def test_statusword_per_state(state: State, statusword: int) -> None:
 def test_statusword_not_ready_and_fault_reaction() -> None:
     d = make(self_test_time=0.5)
     assert d.state is State.NOT_READY_TO_SWITCH_ON
-    assert d.statusword == 0x0200  # x0xx 0000 + remote
+    assert d.statusword == 0x0000  # x0xx 0000
     d = enabled()
     start_move(d, 1000)
     d.advance(0.5)
     d.inject_fault("following_error")
     assert d.state is State.FAULT_REACTION_ACTIVE
-    assert d.statusword == 0x0200 | 0x000F | VOLTAGE | BIT13  # x0xx 1111, following error
+    assert d.statusword == 0x000F | VOLTAGE | BIT13  # x0xx 1111, following error
 
 
 def test_remote_and_warning_bits_follow_attributes() -> None:
     d = make()
-    d.remote = False
+    assert d.statusword & REMOTE == 0  # after power-up: NMT pre-operational
+    d.remote = True
     d.warning = True
-    assert d.statusword == 0x0040 | 0x0080
+    assert d.statusword == 0x0040 | 0x0080 | REMOTE
 
 
 # -- every transition number ------------------------------------------------------------
@@ -271,7 +281,7 @@ def test_target_reached_is_zero_after_power_up_until_a_first_target() -> None:
     d.advance(5.0)
     assert d.statusword & TARGET_REACHED == 0
     start_move(d, 0)  # already there
-    assert d.statusword == 0x0637
+    assert d.statusword == 0x0437
 
 
 def test_trapezoid_move_timing_and_positions() -> None:
@@ -286,7 +296,7 @@ def test_trapezoid_move_timing_and_positions() -> None:
     d.update(1.1 - 1e-6)
     assert d.statusword & TARGET_REACHED == 0
     d.update(1.1 + 1e-6)
-    assert d.statusword == 0x0637
+    assert d.statusword == 0x0437
     assert (read(d, 0x6064), read(d, 0x6062), read(d, 0x606C)) == (1000, 1000, 0)
 
 
@@ -463,15 +473,20 @@ def test_software_position_limits_clamp_target() -> None:
     assert d.position == 5000
 
 
-def test_disable_operation_stops_move_and_drops_target() -> None:
+def test_disable_operation_ramps_down_then_drops_target() -> None:
     d = enabled()
     start_move(d, 1000)
-    d.update(0.5)
-    d.write_controlword(SWITCH_ON)
-    assert (d.position, d.velocity) == (450, 0)
+    d.update(0.5)  # at 450, 1000 inc/s
+    d.write_controlword(SWITCH_ON)  # 605Ch = 1: slow down on 6084h first, then transition 5
+    assert d.state is State.OPERATION_ENABLED
+    d.update(0.6 - 1e-6)
+    assert d.state is State.OPERATION_ENABLED
+    d.update(0.6 + 1e-6)
+    assert d.state is State.SWITCHED_ON and (d.position, d.velocity) == (500, 0)
     d.write_controlword(ENABLE)
     d.advance(5.0)
-    assert d.position == 450 and d.statusword & TARGET_REACHED == 0
+    assert d.position == 500 and d.statusword & TARGET_REACHED == 0
+    assert list(d.unsafe_stops) == [] and d.motion_starts == 1
 
 
 # -- profile velocity ----------------------------------------------------------------------
@@ -517,10 +532,10 @@ def test_homing_sets_home_position() -> None:
     d = enabled(Mode.HOMING)
     write(d, 0x30B0, 1234)
     write(d, 0x607C, 77)  # home offset: stored, not applied (see drive docstring)
-    assert d.statusword == 0x0637  # bits 13,12,10 = 0,0,1: not started
+    assert d.statusword == 0x0437  # bits 13,12,10 = 0,0,1: not started
     d.write_controlword(ENABLE | NEW_SET_POINT)
     assert read(d, 0x6064) == 1234
-    assert d.statusword == 0x0637 | BIT12 | REFERENCED  # homing attained, target reached
+    assert d.statusword == 0x0437 | BIT12 | REFERENCED  # homing attained, target reached
     d.write_controlword(ENABLE)
     d.set_mode(Mode.PROFILE_POSITION)
     start_move(d, 10, RELATIVE)  # relative to the new position
@@ -576,14 +591,14 @@ def test_quick_stop_options(option: int, stop_time: float, final: State, stays: 
     d.advance(1.0)
     d.write_controlword(QUICK_STOP)
     assert d.state is State.QUICK_STOP_ACTIVE
-    assert d.statusword == 0x0217  # x00x 0111, still moving
+    assert d.statusword == 0x0017  # x00x 0111, still moving
     d.advance(stop_time - 1e-6)
     assert d.state is State.QUICK_STOP_ACTIVE and d.statusword & TARGET_REACHED == 0
     d.advance(2e-6)
     assert d.state is final and d.velocity == 0
     assert d.position == round(50 + 900 + 1000 * stop_time / 2)  # ramp up 50, cruise 900, ramp down
     if stays:
-        assert d.statusword == 0x0617 | BIT12  # stopped: bit 10; pv bit 12: speed = 0
+        assert d.statusword == 0x0417 | BIT12  # stopped: bit 10; pv bit 12: speed = 0
         d.write_controlword(ENABLE)
         assert d.state is State.OPERATION_ENABLED
         assert d.history[-1][1] == 16
@@ -596,15 +611,19 @@ def test_quick_stop_option_0_disables_at_once() -> None:
     d.advance(1.0)
     before = len(d.history)
     d.write_controlword(QUICK_STOP)
-    assert transitions_of(d, before) == [11, 12] and d.velocity == 0
+    assert transitions_of(d, before) == [11, 12]
+    # the power stage is off: the axis coasts on (2000 rpm/s), the drive records it
+    assert d.velocity == 1000 and len(d.unsafe_stops) == 1
+    d.advance(0.25)
+    assert d.velocity == 500
 
 
 # -- faults ---------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(("kind", "code", "inputs", "status_extra"), [
-    ("limit_positive", 0x8A89, 0x2, INTERNAL_LIMIT),
-    ("limit_negative", 0x8A88, 0x1, INTERNAL_LIMIT),
+    ("limit_positive", 0x8A81, 0x2, INTERNAL_LIMIT),  # EPOS4 error table (faults.py)
+    ("limit_negative", 0x8A80, 0x1, INTERNAL_LIMIT),
     ("following_error", 0x8611, 0x0, BIT13),
 ])
 def test_fault_injection_and_reset(kind: str, code: int, inputs: int, status_extra: int) -> None:
@@ -612,13 +631,13 @@ def test_fault_injection_and_reset(kind: str, code: int, inputs: int, status_ext
     start_move(d, 1000)
     d.advance(0.5)
     d.inject_fault(kind)
-    assert d.statusword == 0x021F | status_extra  # fault reaction, power stage on
+    assert d.statusword == 0x001F | status_extra  # fault reaction, power stage on
     d.advance(1.0)
-    assert d.state is State.FAULT and d.statusword == 0x0208 | status_extra
+    assert d.state is State.FAULT and d.statusword == 0x0008 | status_extra
     assert (read(d, 0x603F), read(d, 0x1001), read(d, 0x60FD)) == (code, 0x81, inputs)
     assert d.position == 460
     d.write_controlword(FAULT_RESET)
-    assert d.state is State.SWITCH_ON_DISABLED and d.statusword == 0x0240
+    assert d.state is State.SWITCH_ON_DISABLED and d.statusword == 0x0040
     assert (read(d, 0x603F), read(d, 0x1001), read(d, 0x60FD)) == (0, 0, 0)
 
 
@@ -627,7 +646,7 @@ def test_fault_via_simulator_command_object() -> None:
     d.store.write(0x2100, 0, b"\x03\x00\x00\x00")
     assert d.state is State.FAULT and read(d, 0x603F) == 0x8611
     with pytest.raises(SdoAbortedError) as info:
-        d.store.write(0x2100, 0, b"\x04\x00\x00\x00")
+        d.store.write(0x2100, 0, b"\x07\x00\x00\x00")
     assert info.value.code == 0x06090030
 
 
@@ -639,7 +658,7 @@ def test_second_fault_keeps_state_and_updates_code() -> None:
     assert transitions_of(d, before) == [] and read(d, 0x603F) == 0x8611
     with pytest.raises(ValueError):
         d.inject_fault("overheating")
-    assert set(FAULTS) == {"limit_positive", "limit_negative", "following_error"}
+    assert set(FAULTS) == {"limit_positive", "limit_negative", "following_error", "software_limit", "sto"}
 
 
 # -- time -------------------------------------------------------------------------------------------
@@ -652,7 +671,7 @@ def test_virtual_clock_drives_store_reads() -> None:
     clock.advance(0.6)
     assert read(d, 0x6064) == 550  # the read caught up with the clock
     clock.advance(1.0)
-    assert read(d, 0x6041) == 0x0637
+    assert read(d, 0x6041) == 0x0437
     with pytest.raises(ValueError):
         clock.advance(-1)
 
@@ -678,7 +697,7 @@ def test_power_cycle_restores_saved_parameters() -> None:
     d.power_cycle()
     assert d.state is State.SWITCH_ON_DISABLED and d.position == 0
     assert transitions_of(d, len(d.history) - 2) == [0, 1]
-    assert read(d, 0x6081) == 2000 and d.statusword == 0x0240
+    assert read(d, 0x6081) == 2000 and d.statusword == 0x0040
 
 
 # -- motion profiles in isolation ----------------------------------------------------------------
@@ -732,7 +751,11 @@ actions = st.one_of(
     st.tuples(st.just("target"), st.integers(-(1 << 31), (1 << 31) - 1)),
     st.tuples(st.just("velocity"), st.integers(-60000, 60000)),
     st.tuples(st.just("option"), st.integers(-1, 9)),
+    st.tuples(st.just("shutdown_option"), st.integers(-1, 2)),
+    st.tuples(st.just("disable_option"), st.integers(-1, 2)),
+    st.tuples(st.just("method"), st.sampled_from([-4, -1, 1, 2, 7, 17, 18, 23, 33, 34, 35, 37, 3])),
     st.tuples(st.just("fault"), st.sampled_from(sorted(FAULTS))),
+    st.tuples(st.just("reset"), st.sampled_from(["power_cycle", "reset_node"])),
 )
 
 
@@ -740,12 +763,16 @@ actions = st.one_of(
 @given(st.lists(actions, max_size=40))
 def test_any_sequence_keeps_a_valid_state(steps: list[tuple[str, object]]) -> None:
     d = make()
-    index = {"mode": 0x6060, "target": 0x607A, "velocity": 0x60FF, "option": 0x605A}
+    d.switches = VirtualSwitches(-300.0, 300.0, 50.0, -400.0, 400.0)  # reachable in 2 s steps
+    index = {"mode": 0x6060, "target": 0x607A, "velocity": 0x60FF, "option": 0x605A,
+             "shutdown_option": 0x605B, "disable_option": 0x605C, "method": 0x6098}
     for kind, value in steps:
         try:
             if kind == "fault":
                 assert isinstance(value, str)
                 d.inject_fault(value)
+            elif kind == "reset":
+                getattr(d, str(value))()
             elif kind == "dt":
                 assert isinstance(value, float)
                 d.advance(value)
@@ -763,3 +790,10 @@ def test_any_sequence_keeps_a_valid_state(steps: list[tuple[str, object]]) -> No
         assert state_from_statusword(sw) is d.state
         assert -(1 << 31) <= d.position < (1 << 31)
         assert d.store.read_value(0x6061) in (1, 3, 6)
+        # the power stage is on exactly in the states that drive the motor
+        powered = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+        assert not sw & VOLTAGE or d.state in (*powered, State.FAULT_REACTION_ACTIVE)
+        assert d.state not in powered or sw & VOLTAGE
+        assert all(e.velocity != 0.0 for e in d.unsafe_stops)
+        assert d.motion_starts == sum(1 for e in d.events if e.kind is EventKind.MOTION_START) \
+            or len(d.events) == d.events.maxlen

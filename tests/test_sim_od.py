@@ -139,7 +139,7 @@ def test_read_string_and_signed() -> None:
     ("write", 0x6060, 0, b"\x07", 0x06090030),  # above HighLimit
     ("write", 0x6060, 0, b"\x00", 0x06090030),  # below LowLimit
     ("write", 0x6081, 0, struct.pack("<I", 0), 0x06090030),
-    ("write", 0x6081, 0, struct.pack("<I", 1_000_001), 0x06090030),
+    ("write", 0x6083, 0, struct.pack("<I", 100_000_001), 0x06090030),  # above HighLimit
     ("write", 0x2000, 0, b"\x80", 0x06090030),  # node id 128
     ("write", 0x1010, 1, b"abcd", 0x08000020),  # not the "save" signature
     ("write", 0x1011, 1, b"save", 0x08000020),  # not the "load" signature

@@ -10,12 +10,22 @@ bus with ``canopen.Network().connect(interface="virtual", channel=sim.channel)``
 Time: by default the drives run in real time (``time.monotonic``); pass a
 :class:`~epos_link.simulator.drive.VirtualClock` to step time in tests.
 
-NMT resets (guide 3.3.3.5, Table 3-13): a node reset or communication reset
-"while initialization is active" does not communicate and, "upon completion",
-sends a boot-up message (COB-ID 700h + node id, one byte 00h, as canopen's
-``NmtSlave`` sends it) before entering Pre-Operational. ``boot_time`` (real
-seconds, default 0: boot-up sent at once) is how long a reset drive leaves
-SDO requests on the CAN bus unanswered before its boot-up message.
+NMT (guide 3.3.3, Table 3-13), per simulated drive:
+
+* after a reset (power-up, :meth:`Epos4Simulator.power_cycle`, NMT reset node
+  or reset communication) a drive is initialising: "while initialization is
+  active, no communication is supported" (guide 3.3.3.5, Table 3-13), so its
+  CAN SDO server is silent for ``boot_time`` real seconds (default 0); "upon
+  completion" it sends its boot-up message, COB-ID 0x700 + node id with one
+  data byte 0x00, and is Pre-Operational;
+* statusword bit 9 (remote) is 1 exactly while the drive is Operational
+  (Table 3-13, footnote 3);
+* in Stopped a drive's CAN SDO server does not answer (Table 3-13: only NMT,
+  LSS and heartbeat), so the gateway reports 0x05040000 after its timeout;
+* **chosen**: the serial link (node 0 or the device's own id) keeps working
+  in every NMT state. Table 3-13 describes the CAN interface; USB/RS232 is a
+  separate channel (the guide's "Wrong NMT state error" 0x0F00FFC0 is not
+  tied to it anywhere), and a host must be able to start a stopped node.
 """
 from __future__ import annotations
 
@@ -24,12 +34,14 @@ import threading
 import time
 from typing import Any, Callable, Iterable, Optional
 
+import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
 from ..codes import ErrorCode, NmtCommand
 from .device import Abort, DeviceProtocol
 from .drive import Drive
+from .nmt import NmtState, next_state
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
 
@@ -47,42 +59,78 @@ def _locked(lock: threading.RLock, fn: Callable[..., Any]) -> Callable[..., Any]
 
 
 class SimulatedDrive:
-    """One drive: object store, CiA 402 model and (behind the gateway) its LocalNode."""
+    """One drive: object store, CiA 402 model, NMT state and (behind the gateway) its LocalNode."""
 
     def __init__(self, node_id: int, clock: Callable[[], float]) -> None:
         self.node_id = node_id
         self.store = ObjectStore(load_object_dictionary(node_id))
         self.store.set(NODE_ID_OBJECT, 0, node_id)
         self.drive = Drive(self.store, clock=clock)
-        self.local_node: Optional[canopen.LocalNode] = None
-        self.booting = False  # after an NMT reset, until the boot-up message
+        self.drive.on_power_up = self._reset_done
+        self.nmt_state = NmtState.PRE_OPERATIONAL
+        # How a reset ends: Epos4Simulator sets it (boot_time); default at once.
+        self.boot: Callable[["SimulatedDrive"], None] = SimulatedDrive.booted
         self.boot_timer: Optional[threading.Timer] = None
+        self.local_node: Optional[canopen.LocalNode] = None
+        self.network: Optional[canopen.Network] = None  # where boot-up messages go
         # The serial thread and the CAN notifier thread both reach this store.
         self.lock = threading.RLock()
         for name in ("read", "write"):
             setattr(self.store, name, _locked(self.lock, getattr(self.store, name)))
 
+    def attach(self, node: canopen.LocalNode, network: canopen.Network) -> None:
+        """Serve CAN SDO through ``node`` on ``network``, silent while NMT Stopped."""
+        serve = node.sdo.on_request
+
+        def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
+            # Table 3-13: no SDO in Stopped, no communication while initialising.
+            if self.nmt_state not in (NmtState.STOPPED, NmtState.INITIALISING):
+                serve(can_id, data, timestamp)
+
+        # An instance attribute, set before add_node subscribes it to the bus.
+        node.sdo.on_request = on_request  # type: ignore[method-assign]
+        self.local_node = node
+        self.network = network
+        network.add_node(node)
+
     def nmt(self, command: int) -> None:
         with self.lock:
-            self._nmt(command)
+            if command == NmtCommand.RESET_NODE:
+                self.drive.reset_node(self.drive.clock() if self.drive.clock else None)
+                return  # _reset_done() goes on
+            if command == NmtCommand.RESET_COMMUNICATION:
+                self._reset_done("reset communication")
+                return
+            if self.nmt_state is not NmtState.INITIALISING:
+                self._set_state(next_state(self.nmt_state, command))
 
-    def _nmt(self, command: int) -> None:
-        if command == NmtCommand.RESET_NODE:
+    def power_cycle(self) -> None:
+        """The supply is switched off and on: saved parameters, counter 0, boot-up."""
+        with self.lock:
             self.drive.power_cycle(self.drive.clock() if self.drive.clock else None)
-            self.store.set(NODE_ID_OBJECT, 0, self.node_id)
 
+    def _reset_done(self, cause: str) -> None:
+        self.store.set(NODE_ID_OBJECT, 0, self.node_id)
+        self._set_state(NmtState.INITIALISING)
+        self.boot(self)
 
-def _silent_while_booting(sim: SimulatedDrive) -> None:
-    """Wrap the LocalNode's SDO server (before it joins the network, which binds
-    the method) so that a booting drive leaves requests unanswered."""
-    assert sim.local_node is not None
-    serve = sim.local_node.sdo.on_request
+    def booted(self) -> None:
+        """Initialisation complete: boot-up message, then Pre-Operational."""
+        with self.lock:
+            if self.nmt_state is not NmtState.INITIALISING:
+                return
+            self._set_state(NmtState.PRE_OPERATIONAL)
+            network = self.network
+        if network is not None:
+            try:
+                # CiA 301 7.2.8.3.2.1: boot-up = COB-ID 0x700 + node id, one byte 0x00.
+                network.send_message(0x700 + self.node_id, b"\x00")
+            except can.CanError:  # the simulator was closed meanwhile: nobody to tell
+                pass
 
-    def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
-        if not sim.booting:
-            serve(can_id, data, timestamp)
-
-    sim.local_node.sdo.on_request = on_request  # type: ignore[method-assign]
+    def _set_state(self, state: NmtState) -> None:
+        self.nmt_state = state
+        self.drive.remote = state is NmtState.OPERATIONAL  # statusword bit 9
 
 
 class Epos4Simulator:
@@ -114,9 +162,10 @@ class Epos4Simulator:
         for nid in remote:
             self.drives[nid] = SimulatedDrive(nid, self.clock)
         for nid, sim in self.drives.items():
-            sim.local_node = make_local_node(sim.store, nid)
-            _silent_while_booting(sim)
-            self._drive_net.add_node(sim.local_node)
+            sim.boot = self._boot
+            sim.attach(make_local_node(sim.store, nid), self._drive_net)
+        for nid in self.drives:  # powered up: each drive says so (CiA 301 boot-up)
+            self._drive_net.send_message(0x700 + nid, b"\x00")
         self._drive_net.subscribe(0, self._on_nmt)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
@@ -169,7 +218,6 @@ class Epos4Simulator:
             raise Abort(ErrorCode.COMMAND_UNKNOWN)  # not a CS of Table 3-14
         if node == self.node_id:
             self.own.nmt(command)
-            self._boot(self.own, command)
         elif self.gateway is not None:
             # Node 0 is "all nodes": on the bus, where this device hears it too.
             self.gateway.nmt(node, command)
@@ -183,41 +231,50 @@ class Epos4Simulator:
         for nid, sim in self.drives.items():
             if target in (0, nid):
                 sim.nmt(command)
-                self._boot(sim, command)
 
-    def _boot(self, sim: SimulatedDrive, command: int) -> None:
-        """After a reset: silent for ``boot_time``, then the boot-up message."""
-        if command not in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
-            return
+    def _boot(self, sim: SimulatedDrive) -> None:
+        """After a reset: silent for ``boot_time``, then the boot-up message.
+
+        Lock order: a drive's lock may be held when this runs; ``_boot_lock``
+        is never held while a drive's lock is taken.
+        """
         with self._boot_lock:
             if sim.boot_timer is not None:
                 sim.boot_timer.cancel()  # one pending boot per drive: the last reset counts
                 sim.boot_timer = None
-            if self.boot_time <= 0:
-                self._send_bootup(sim)
-                return
-            sim.booting = True
-            timer = threading.Timer(self.boot_time, lambda: self._booted(sim, timer))
-            timer.daemon = True
-            sim.boot_timer = timer
-            timer.start()
+            at_once = self.boot_time <= 0 or self._drive_net is None
+            if not at_once:
+                timer = threading.Timer(self.boot_time, lambda: self._booted(sim, timer))
+                timer.daemon = True
+                sim.boot_timer = timer
+                timer.start()
+        if at_once:
+            sim.booted()
 
     def _booted(self, sim: SimulatedDrive, timer: threading.Timer) -> None:
         with self._boot_lock:
             if sim.boot_timer is not timer:  # cancelled, or replaced by a later reset
                 return
             sim.boot_timer = None
-            self._send_bootup(sim)
-
-    def _send_bootup(self, sim: SimulatedDrive) -> None:
-        sim.booting = False
-        if self._drive_net is not None:  # closed: nobody to tell
-            self._drive_net.send_message(0x700 + sim.node_id, b"\x00")
+        sim.booted()
 
     # -- conveniences ----------------------------------------------------------------------
 
     def drive(self, node_id: int) -> Drive:
         return self.drives[node_id].drive
+
+    def power_cycle(self, node_id: int) -> None:
+        """Fault injection: switch drive ``node_id`` off and on (see :meth:`SimulatedDrive.power_cycle`)."""
+        self.drives[node_id].power_cycle()
+
+    def nmt_state(self, node_id: int) -> NmtState:
+        return self.drives[node_id].nmt_state
+
+    def increments_per_revolution(self, node_id: int) -> int:
+        """Main sensor increments per motor revolution of drive ``node_id`` (3000h:05)."""
+        sim = self.drives[node_id]
+        with sim.lock:
+            return sim.drive.increments_per_revolution
 
     def close(self) -> None:
         with self._boot_lock:
@@ -231,6 +288,8 @@ class Epos4Simulator:
             self.gateway = None
         with self._boot_lock:
             net, self._drive_net = self._drive_net, None
+            for sim in self.drives.values():
+                sim.network = None
         if net is not None:
             net.disconnect()
 

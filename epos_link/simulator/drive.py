@@ -5,55 +5,69 @@ Pure: no clocks, threads or I/O. Time is a float the caller passes in
 store calls before every SDO access (``time.monotonic`` for real time, a
 :class:`VirtualClock` for tests and fast simulation).
 
-What is modelled (CiA 402-2 V4.0 sections in brackets):
+What is modelled (CiA 402-2 V4.0 sections in brackets), in EPOS4 units
+(:mod:`~epos_link.simulator.units`: increments, rpm, rpm/s):
 
 * the power state machine with transitions 0..16 [6.4.1], see
-  :mod:`~epos_link.simulator.cia402`; quick stop per 605Ah [6.4.1.3]; faults
-  enter FAULT_REACTION_ACTIVE, ramp down on 6085h, then FAULT [6.4.1.1];
+  :mod:`epos_link.cia402`; the option codes [6.4.1.3]: 605Ah quick stop,
+  605Bh shutdown (transition 8), 605Ch disable operation (transition 5),
+  605Dh halt, 605Eh fault reaction. With option "slow down ramp" (605Bh/605Ch
+  = 1) the drive ramps down on 6084h and only then makes the transition: the
+  statusword shows OPERATION ENABLED until standstill [6.4.1];
 * profile position mode 1 [6.7]: absolute/relative (cw bit 6), new set-point
   (bit 4) with the set-point acknowledge handshake (sw bit 12) and a one-entry
   buffer, change set immediately (bit 5), halt (bit 8), target reached (bit 10);
 * profile velocity mode 3 [6.9]: 60FFh with 6083h/6084h ramps, bit 10 =
   velocity reached, bit 12 = speed is zero;
-* homing mode 6 [6.6]: starts on a rising edge of bit 4 and completes at
-  once for every method: 6064h becomes 30B0h (home position) and sw bits 12
-  and 10 are set. 607Ch (home offset) is stored but unused, as on the EPOS4
-  where it is a move distance from the home switch and the method-35/37
-  ("actual position") homing ignores it; the simulator has no switches.
+* homing mode 6 [6.6]: travels at the homing speeds to virtual switches
+  (:mod:`~epos_link.simulator.homing`), statusword bits 13/12/10 as in the
+  6.6 table; halt interrupts it;
 * trapezoidal profiles in closed form (:mod:`~epos_link.simulator.motion`),
-  velocity 6081h <= 607Fh, accelerations 6083h/6084h/6085h <= 60C5h.
+  velocity 6081h <= 607Fh, 6080h, accelerations 6083h/6084h/6085h <= 60C5h,
+  planned in :mod:`~epos_link.simulator.kinematics` (which ramp for which state);
+* what matters for safety, in :attr:`Drive.safety`
+  (:mod:`~epos_link.simulator.safety`): motion starts, power stage switched
+  off while moving, resets while moving.
 
-Decisions a client may notice:
+The axis and the counter: the motion profile runs in the frame of the
+physical axis; 6064h is that position plus an offset. Homing sets the
+offset (counter := 30B0h), a power cycle or NMT reset node sets it so the
+incremental counter reads 0 again, while the axis stays (or coasts on).
 
+Decisions a client may notice (**chosen** where the manuals are silent):
+
+* With the power stage off (any state but OPERATION ENABLED, QUICK STOP
+  ACTIVE and a powered fault reaction) the axis coasts to rest on
+  :attr:`Drive.coast_deceleration` (rpm/s, default 2000): the drive cannot
+  brake it. Shutdown with 605Bh = 0 (default) and disable voltage do that.
+* 605Ah defaults to 2, CiA 402's default: the EPOS4's default is not in our
+  sources. Option codes 3, 4, 7, 8 (current/voltage limit) behave like 2 and 6.
+  605Bh = 0, 605Ch = 1, 605Dh = 1, 605Eh = 2 are the EPOS4 defaults as public
+  EPOS4 configuration code quotes the Firmware Specification (6.2.97..6.2.100).
+* While a 605Bh/605Ch ramp runs, new set-points are ignored, enable
+  operation is ignored, and shutdown, disable voltage or quick stop replace
+  the pending transition.
 * 607Dh software limits clamp a pp target (CiA 402-2 6.5.2) and set sw bit 11
-  until the next unclamped set-point. Min >= max switches them off. Profile
-  velocity mode does not watch them.
+  until the next unclamped set-point; min >= max switches them off. Profile
+  velocity clamped by 607Fh/6080h also sets bit 11 (EPOS4: bit 11 "internal
+  limit active" includes velocity limiting). Limit switch inputs are in 60FDh.
 * A relative target (cw bit 6) is relative to the preceding target; after
   power-up, homing, a mode change or an interrupted move it is relative to
   the position demand value.
-* Releasing halt resumes the pp move to the pending target.
-* Leaving OPERATION_ENABLED by disable operation, shutdown or disable voltage
-  stops the axis where it is (no inertia is modelled); quick stop ramps.
-  Quick stop option codes 3, 4, 7, 8 behave like 2 and 6.
-* Statusword bit 4 (voltage enabled) is 1 in OPERATION_ENABLED and
-  QUICK_STOP_ACTIVE, and in FAULT_REACTION_ACTIVE when the fault came from
-  one of them. Bit 9 (remote) is ``Drive.remote``, True unless a simulator
-  clears it; on an EPOS4 it follows NMT Operational (guide Table 3-13).
-  Bit 15 (maxon: position referenced to home) is set after a homing.
-* Injected faults are one-shot: a fault reset always succeeds. They set
-  603Fh, 1001h and, for limit switches, the 60FDh input bits and sw bit 11
-  until the reset. A following error also sets sw bit 13 (pp: following
-  error, hm: homing error) until the reset.
-* Homing never shows "in progress": in hm, sw bit 10 is 1, and bit 12
-  (homing attained) is 1 once a homing has completed since power-up.
+* Releasing halt resumes the pp move to the pending target, and a pv move to
+  60FFh: both count as motion starts.
+* Statusword bit 4 (voltage enabled) is 1 while the power stage is on. Bit 9
+  (remote) is ``Drive.remote``: False after power-up; the simulator sets it
+  while NMT is Operational (guide Table 3-13, footnote 3). Bit 15 (maxon:
+  position referenced to home) is set by a completed homing.
+* Faults (:mod:`~epos_link.simulator.faults`) are one-shot: a fault reset
+  always succeeds.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
-from enum import IntEnum
 
 from canopen import SdoAbortedError
 
@@ -66,63 +80,25 @@ from ..cia402 import (
     T_FAULT_REACTION_DONE,
     T_INITIALISED,
     T_QUICK_STOP_DONE,
-    T_SELF_TEST_DONE,
     TRANSITIONS,
     Command,
     State,
     decode_command,
 )
-from .motion import Kind, Profile, hold, plan_position, plan_stop, plan_velocity
+from .clock import VirtualClock
+from .faults import FAULTS, POWER_CYCLE_COMMAND, SIMULATOR_COMMANDS, FaultSpec, Reaction, push_history
+from .objects import Mode, install_object_rules
+from .homing import HomingStatus, Leg, VirtualSwitches
+from .kinematics import Kinematics
+from .motion import Profile, hold
 from .od import ABORT_RANGE, ObjectStore, Value, load_object_dictionary
+from .safety import DriveEvent, EventKind, SafetyLog
+from .units import Units, units_of
 
 __all__ = ["FAULTS", "Drive", "FaultSpec", "Mode", "SIMULATOR_COMMANDS", "VirtualClock"]
 
 _I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
-
-
-class Mode(IntEnum):
-    """Supported modes of operation, 6060h (CiA 402-2 6.3.1); 6502h = 0x25."""
-
-    PROFILE_POSITION = 1
-    PROFILE_VELOCITY = 3
-    HOMING = 6
-
-
-@dataclass(frozen=True)
-class FaultSpec:
-    """What an injected fault leaves in the dictionary until a fault reset."""
-
-    # 603Fh. maxon-like codes as we remember the EPOS4 Firmware Specification's
-    # error table; that manual is not among our sources, so check before relying on them.
-    error_code: int
-    error_register: int  # 1001h bits, CiA 301 7.5.2.2: bit 0 generic, bit 7 manufacturer (maxon: motion error)
-    digital_inputs: int  # 60FDh bits (CiA 402-2 60FDh: bit 0 negative, bit 1 positive limit switch)
-
-
-FAULTS: dict[str, FaultSpec] = {
-    "limit_positive": FaultSpec(0x8A89, 0x81, 0x0000_0002),
-    "limit_negative": FaultSpec(0x8A88, 0x81, 0x0000_0001),
-    "following_error": FaultSpec(0x8611, 0x81, 0x0000_0000),
-}
-
-# Values of the write-only 2100h "Simulator command" (see epos4.eds).
-SIMULATOR_COMMANDS: dict[int, str] = {1: "limit_positive", 2: "limit_negative", 3: "following_error"}
-
-
-class VirtualClock:
-    """A clock that moves only when told to; pass it as ``Drive(clock=...)``."""
-
-    def __init__(self, start: float = 0.0) -> None:
-        self.now = float(start)
-
-    def __call__(self) -> float:
-        return self.now
-
-    def advance(self, dt: float) -> float:
-        if dt < 0:
-            raise ValueError("time cannot run backwards")
-        self.now += dt
-        return self.now
+_RAMPED_DISABLE = {5: 0x605C, 8: 0x605B}  # transition -> its option code object
 
 
 def _wrap_i32(value: float) -> int:
@@ -131,26 +107,33 @@ def _wrap_i32(value: float) -> int:
     return (n - _I32_MIN) % (1 << 32) + _I32_MIN
 
 
-class Drive:
+class Drive(Kinematics):
     """The CiA 402 drive: state machine, modes and motion, served through ``store``.
 
     ``store`` defaults to a fresh store over the shipped EDS (node 1). With
     ``clock`` the drive catches up with ``clock()`` before every store access;
     without it, time moves only by ``update``/``advance``. ``self_test_time``
     delays transition 1 so NOT_READY_TO_SWITCH_ON can be observed.
+    ``on_power_up(cause)`` is called after a power cycle or NMT reset node.
     """
 
     def __init__(self, store: ObjectStore | None = None, *,
                  clock: Callable[[], float] | None = None, start: float | None = None,
-                 self_test_time: float = 0.0) -> None:
+                 self_test_time: float = 0.0, switches: VirtualSwitches | None = None,
+                 coast_deceleration: float = 2000.0) -> None:
         self.store = store if store is not None else ObjectStore(load_object_dictionary())
         self.clock = clock
-        self.remote = True
+        self.remote = False
         self.warning = False
+        self.switches = switches if switches is not None else VirtualSwitches()
+        self.coast_deceleration = float(coast_deceleration)  # rpm/s, power stage off
+        self.safety = SafetyLog()
+        self.on_power_up: Callable[[str], None] | None = None
         # (time, transition number, new state), newest last.
         self.history: deque[tuple[float, int, State]] = deque(maxlen=256)
         self._self_test_time = float(self_test_time)
-        self._install_hooks()
+        self._profile: Profile = hold(0.0, 0.0)
+        install_object_rules(self.store, self)
         self._power_up(start if start is not None else (clock() if clock is not None else 0.0))
         if clock is not None:
             self.store.before_access = self.sync
@@ -183,10 +166,29 @@ class Drive:
         if self.clock is not None:
             self.update(self.clock())
 
+    # -- resets ------------------------------------------------------------------------
+
     def power_cycle(self, now: float | None = None) -> None:
-        """NMT reset node: parameters back to the saved ones, state machine from transition 0."""
+        """Power lost and back: saved parameters, counter 0, state machine from transition 0."""
+        self._reset(EventKind.POWER_CYCLE, now)
+
+    def reset_node(self, now: float | None = None) -> None:
+        """NMT reset node: the same as a power cycle (guide Table 3-13), counted if moving."""
+        self._reset(EventKind.NMT_RESET, now)
+
+    def _reset(self, kind: EventKind, now: float | None) -> None:
+        if now is not None:
+            self.update(now)
+        else:
+            self.sync()
+        v = self.velocity_increments
+        self._record(kind, kind.value, v)
+        if kind is EventKind.NMT_RESET and v != 0.0:
+            self._record(EventKind.RESET_WHILE_MOVING, "NMT reset node", v)
         self.store.reset()
-        self._power_up(self._now if now is None else now)
+        self._power_up(self._now)
+        if self.on_power_up is not None:
+            self.on_power_up(kind.value)
 
     # -- observation -----------------------------------------------------------------
 
@@ -203,46 +205,95 @@ class Drive:
         return self._cw
 
     @property
+    def units(self) -> Units:
+        return units_of(self.store)
+
+    @property
+    def increments_per_revolution(self) -> int:
+        """Main sensor increments per motor revolution (3000h:05 = 4 x 3010h:01)."""
+        return self.units.increments_per_revolution
+
+    @property
     def position(self) -> int:
         """6064h (and 6062h: the demand equals the actual value in this model)."""
-        return _wrap_i32(self._profile.state_at(self._now)[0])
+        return _wrap_i32(self._physical() + self._offset)
+
+    @property
+    def axis_position(self) -> float:
+        """Where the axis physically is, in increments from where it was at the first power-up.
+
+        Unlike 6064h it is not moved by homing or power cycles: tests use it
+        to see whether the axis really moved.
+        """
+        return self._physical()
 
     @property
     def velocity(self) -> int:
-        """606Ch."""
-        return int(math.floor(self._profile.state_at(self._now)[1] + 0.5))
+        """606Ch, in the unit of 60A9h (rpm by default)."""
+        return int(math.floor(self.units.velocity_from_inc_s(self.velocity_increments) + 0.5))
+
+    @property
+    def velocity_increments(self) -> float:
+        """The axis velocity in increments per second."""
+        return self._profile.state_at(self._now)[1]
+
+    @property
+    def homing_status(self) -> HomingStatus:
+        return self._homing_status
+
+    @property
+    def events(self) -> deque[DriveEvent]:
+        return self.safety.events
+
+    @property
+    def motion_starts(self) -> int:
+        return self.safety.motion_starts
+
+    @property
+    def unsafe_stops(self) -> deque[DriveEvent]:
+        return self.safety.unsafe_stops
+
+    @property
+    def resets_while_moving(self) -> int:
+        return self.safety.resets_while_moving
 
     @property
     def statusword(self) -> int:
         """6041h, CiA 402-2 6.4.1.4 and the mode-specific bits of 6.6/6.7/6.9."""
         st = self._state
         sw = STATE_BITS[st]
-        if st in POWERED_STATES or (st is State.FAULT_REACTION_ACTIVE and self._powered_at_fault):
+        if self._powered():
             sw |= SW.VOLTAGE_ENABLED
         if self.warning:
             sw |= SW.WARNING
         if self.remote:
             sw |= SW.REMOTE
-        velocity = self._profile.state_at(self._now)[1]
+        velocity = self.velocity_increments
+        at_rest = velocity == 0.0
         halted = st is State.OPERATION_ENABLED and bool(self._cw & CW.HALT)
-        if st is State.QUICK_STOP_ACTIVE:
-            reached = velocity == 0.0  # "quick stop finished, drive halted" (6.4.1.4, bit 10)
+        bit12 = bit13 = False
+        if st is State.QUICK_STOP_ACTIVE or self._pending is not None:
+            reached = at_rest  # "quick stop finished, drive halted" (6.4.1.4, bit 10)
         elif self._mode is Mode.PROFILE_POSITION:
-            reached = (halted and velocity == 0.0) or self._target_reached
+            reached = (halted and at_rest) or self._target_reached
         elif self._mode is Mode.PROFILE_VELOCITY:
             reached = velocity == self._velocity_goal()[0]
         else:
-            reached = True  # homing is never "in progress": it completes at once
-        if reached:
-            sw |= SW.TARGET_REACHED
-        if self._clamped or (self._fault is not None and self._fault.digital_inputs):
-            sw |= SW.INTERNAL_LIMIT_ACTIVE
+            reached = False
         if self._mode is Mode.PROFILE_POSITION:
             bit12, bit13 = self._ack, self._following_error
         elif self._mode is Mode.PROFILE_VELOCITY:
-            bit12, bit13 = velocity == 0.0, False
-        else:
-            bit12, bit13 = self._homed, self._following_error
+            bit12 = at_rest
+        else:  # homing, CiA 402-2 6.6 table: bits 13/12/10
+            status = self._homing_status
+            bit13 = status is HomingStatus.ERROR
+            bit12 = status is HomingStatus.DONE
+            if status is not HomingStatus.RUNNING and st is not State.QUICK_STOP_ACTIVE:
+                reached = status is HomingStatus.DONE or at_rest
+        if reached:
+            sw |= SW.TARGET_REACHED
+        if self._clamped or (self._fault is not None and self._fault.internal_limit):
+            sw |= SW.INTERNAL_LIMIT_ACTIVE
         if bit12:
             sw |= SW.OP_MODE_12
         if bit13:
@@ -262,7 +313,7 @@ class Drive:
         self.store.write_value(0x6060, 0, int(mode))
 
     def inject_fault(self, kind: str) -> None:
-        """Raise a fault now: ``"limit_positive"``, ``"limit_negative"`` or ``"following_error"``."""
+        """Raise a fault now; ``kind`` is a key of :data:`FAULTS` (e.g. ``"sto"``)."""
         try:
             spec = FAULTS[kind]
         except KeyError:
@@ -273,126 +324,164 @@ class Drive:
         st.set(0x603F, 0, spec.error_code)
         st.set(0x1001, 0, st.get_int(0x1001) | spec.error_register)
         st.set(0x60FD, 0, st.get_int(0x60FD) | spec.digital_inputs)
+        push_history(st, spec.error_code)
+        self._record(EventKind.FAULT, f"0x{spec.error_code:04X} {spec.name}", self.velocity_increments)
         if kind == "following_error":
             self._following_error = True
+            if self._mode is Mode.HOMING and self._homing_status is HomingStatus.RUNNING:
+                self._homing_status = HomingStatus.ERROR
         if self._state in (State.FAULT_REACTION_ACTIVE, State.FAULT):
             return
-        self._powered_at_fault = self._state in POWERED_STATES
-        self._abort_move()
+        self._powered_at_fault = (self._state in POWERED_STATES and spec.reaction is Reaction.FAULT_REACTION
+                                  and self.store.get_int(0x605E) != 0)
+        self._interrupt()
         self._transition(*T_FAULT)
+        if not self._powered_at_fault:
+            self._transition(*T_FAULT_REACTION_DONE)  # power stage off at once: no reaction ramp
         self._plan()
         self._run_until(self._now)
 
-    # -- internals: power-up and hooks -------------------------------------------------
+    # -- internals: power-up -------------------------------------------------------------
 
     def _power_up(self, t: float) -> None:
         self._now = float(t)
+        self._offset = -self._physical()  # the incremental counter starts at 0
         self._cw = 0
-        self._profile: Profile = hold(self._now, 0.0)
-        self._target: int | None = None  # pp target being approached (or reached)
-        self._buffer: int | None = None  # pp set-point waiting for the current move
-        self._last_target: int | None = None  # base of relative set-points
+        self._target: float | None = None  # pp target being approached (physical frame)
+        self._buffer: float | None = None  # pp set-point waiting for the current move
+        self._last_target: int | None = None  # base of relative set-points (counter frame)
         self._target_reached = False  # 0 after power-up until a first target is reached
         self._ack = False
         self._clamped = False
         self._homed = False
+        self._homing_status = HomingStatus.IDLE
+        self._legs: deque[Leg] = deque()
         self._following_error = False
         self._fault: FaultSpec | None = None
         self._powered_at_fault = False
+        self._pending: tuple[int, State] | None = None  # transition waiting for a ramp
+        self._goal = False  # heading for motion (for counting motion starts)
+        self.remote = False  # NMT pre-operational after boot-up
         mode = self.store.get_int(0x6060)
         self._mode = Mode(mode) if mode in Mode._value2member_map_ else Mode.PROFILE_POSITION
         self._self_test_until = self._now + self._self_test_time
         self._state = State.NOT_READY_TO_SWITCH_ON
         self._transition(*T_INITIALISED)
+        self._plan()
         self._run_until(self._now)
 
-    def _install_hooks(self) -> None:
-        s = self.store
-        s.add_read_hook(0x6041, 0, lambda: self.statusword)
-        s.add_read_hook(0x6061, 0, lambda: int(self._mode))
-        s.add_read_hook(0x6062, 0, lambda: self.position)
-        s.add_read_hook(0x6064, 0, lambda: self.position)
-        s.add_read_hook(0x606C, 0, lambda: self.velocity)
-        s.add_write_hook(0x6040, 0, self._on_controlword)
-        s.add_write_hook(0x6060, 0, self._on_mode)
-        s.add_write_hook(0x60FF, 0, self._on_target_velocity)
-        s.add_write_hook(0x2100, 0, self._on_simulator_command)
+    def _physical(self) -> float:
+        return self._profile.state_at(self._now)[0]
+
+    def _record(self, kind: EventKind, detail: str, velocity: float) -> None:
+        self.safety.record(self._now, kind, detail, velocity)
 
     # -- internals: state machine ------------------------------------------------------
 
+    def _powered(self) -> bool:
+        st = self._state
+        return st in POWERED_STATES or (st is State.FAULT_REACTION_ACTIVE and self._powered_at_fault)
+
     def _transition(self, number: int, state: State) -> None:
+        was_powered, v = self._powered(), self.velocity_increments
         self.history.append((self._now, number, state))
         self._state = state
-        if number in (5, 8, 9, 12):
-            self._abort_move()  # leaving operation: the pp move is dropped
-        elif number == 11:
-            self._abort_move()
-            if self._quick_stop_option() == 0:  # 605Ah = 0: disable drive function at once
-                self._transition(*T_QUICK_STOP_DONE)
-        elif number == 15:
+        self._pending = None  # any transition ends a 605Bh/605Ch ramp (or is its end)
+        if number in (5, 8, 9, 11, 12):
+            self._interrupt()  # leaving operation: the move and homing are dropped
+        if number == 15:
             self._fault = None
             self._following_error = False
             self._clamped = False
-            self.store.set(0x603F, 0, 0)
-            self.store.set(0x1001, 0, 0)
-            self.store.set(0x60FD, 0, 0)
+            if self._homing_status is HomingStatus.ERROR:
+                self._homing_status = HomingStatus.IDLE
+            for index in (0x603F, 0x1001, 0x60FD):
+                self.store.set(index, 0, 0)
+        if was_powered and not self._powered() and v != 0.0:
+            self._record(EventKind.UNSAFE_STOP, f"transition {number} to {state.name}", v)
+        if number == 11 and self.store.get_int(0x605A) == 0:  # disable drive function at once
+            self._transition(*T_QUICK_STOP_DONE)
 
-    def _on_controlword(self, value: Value) -> None:
+    def on_controlword(self, value: Value) -> None:
         assert isinstance(value, int)
         cw = value & 0xFFFF
         previous, self._cw = self._cw, cw
-        state_before = self._state
+        state_before, pending_before = self._state, self._pending
         command = decode_command(cw, previous)
         if command is not None:
             self._command(command)
-        if self._state is not state_before or (cw ^ previous) & CW.HALT:
-            self._plan()
         rising = cw & ~previous
-        if rising & CW.NEW_SET_POINT and self._state is State.OPERATION_ENABLED:
+        if rising & CW.HALT and self._homing_status is HomingStatus.RUNNING:
+            self._interrupt()  # halt interrupts a homing; a new start is needed
+        if self._state is not state_before or self._pending != pending_before or (cw ^ previous) & CW.HALT:
+            self._plan()
+        if rising & CW.NEW_SET_POINT and self._state is State.OPERATION_ENABLED and self._pending is None:
             if self._mode is Mode.PROFILE_POSITION:
                 self._accept_set_point(cw)
             elif self._mode is Mode.HOMING:
                 self._home()
         self._update_ack()
+        self._track_goal("halt released" if previous & ~cw & CW.HALT else "controlword")
         self._run_until(self._now)
 
     def _command(self, command: Command) -> None:
-        for number, state in TRANSITIONS.get((self._state, command), ()):
-            if number == 16 and self._quick_stop_option() not in (5, 6, 7, 8):
+        steps = TRANSITIONS.get((self._state, command), ())
+        if self._pending is not None and steps:
+            if steps[0][0] == self._pending[0]:
+                return  # the same request again: the ramp goes on
+            self._pending = None  # another way out of OPERATION ENABLED replaces it
+        for number, state in steps:
+            if number == 16 and self.store.get_int(0x605A) not in (5, 6, 7, 8):
                 return  # 16 exists only for the "stay in quick stop" option codes
+            option = _RAMPED_DISABLE.get(number)
+            if option is not None and self.store.get_int(option) == 1 and self.velocity_increments != 0.0:
+                self._pending = (number, state)  # slow down on 6084h, then the transition
+                self._interrupt()
+                return
             self._transition(number, state)
 
-    def _quick_stop_option(self) -> int:
-        return self.store.get_int(0x605A)
-
-    def _on_mode(self, value: Value) -> None:
+    def on_mode(self, value: Value) -> None:
         if not isinstance(value, int) or value not in Mode._value2member_map_:
             raise SdoAbortedError(ABORT_RANGE)  # 6060h: only the modes of 6502h
         mode = Mode(value)
         if mode is not self._mode:
             self._mode = mode
-            self._abort_move()
+            self._interrupt()
             self._plan()
+            self._track_goal("mode change")
             self._run_until(self._now)
 
-    def _on_target_velocity(self, value: Value) -> None:
+    def on_target_velocity(self, value: Value) -> None:
         self.store.set(0x60FF, 0, value)
         if self._mode is Mode.PROFILE_VELOCITY and self._state is State.OPERATION_ENABLED:
             self._plan()
+            self._track_goal("target velocity")
 
-    def _on_simulator_command(self, value: Value) -> None:
+    def on_units_changed(self) -> None:
+        """60A9h or the encoder changed: the running profile is re-planned in the new units."""
+        if self._state is State.OPERATION_ENABLED:
+            self._plan()
+
+    def on_simulator_command(self, value: Value) -> None:
         kind = SIMULATOR_COMMANDS.get(value) if isinstance(value, int) else None
         if kind is None:
             raise SdoAbortedError(ABORT_RANGE)
-        self.inject_fault(kind)
+        if kind == POWER_CYCLE_COMMAND:
+            self.power_cycle()
+        else:
+            self.inject_fault(kind)
 
     # -- internals: modes ------------------------------------------------------------------
 
-    def _abort_move(self) -> None:
+    def _interrupt(self) -> None:
+        """Drop the pp move and stop a homing in progress (it reads "interrupted")."""
         # An interrupted move keeps target reached = 0; a finished one keeps 1.
         self._target = None
         self._buffer = None
         self._last_target = None
+        if self._homing_status is HomingStatus.RUNNING:
+            self._homing_status = HomingStatus.IDLE
+        self._legs.clear()
 
     def _accept_set_point(self, cw: int) -> None:
         """Profile position set-point on a rising edge of cw bit 4 (CiA 402-2 6.7.1)."""
@@ -401,18 +490,21 @@ class Drive:
             base = self._last_target if self._last_target is not None else self.position
             target += base
         target, clamped = self._clamp_position(target)
+        physical = target - self._offset
         busy = self._target is not None and not self._target_reached
         if cw & CW.CHANGE_SET_IMMEDIATELY or not busy:
-            self._target, self._buffer = target, None
+            self._target, self._buffer = physical, None
             self._target_reached = False
             self._plan()
         elif self._buffer is None:
-            self._buffer = target  # single set-point buffer: started when this move ends
+            self._buffer = physical  # single set-point buffer: started when this move ends
         else:
             return  # buffer full: set-point not accepted, no acknowledge
         self._last_target = target
         self._clamped = clamped
         self._ack = True
+        self._record(EventKind.MOTION_START, f"set-point {target}", self.velocity_increments)
+        self._goal = self._moving_goal()
 
     def _update_ack(self) -> None:
         # Set-point acknowledge drops once the master clears bit 4 and the buffer is free.
@@ -425,89 +517,3 @@ class Drive:
             lo, hi = _I32_MIN, _I32_MAX  # limits switched off
         clamped = min(max(target, max(lo, _I32_MIN)), min(hi, _I32_MAX))
         return clamped, clamped != target
-
-    def _home(self) -> None:
-        """Homing (CiA 402-2 6.6): completes at once, position := 30B0h home position."""
-        if self._cw & CW.HALT:
-            return
-        self._abort_move()
-        self._following_error = False
-        self._profile = hold(self._now, float(self.store.get_int(0x30B0)))
-        self._homed = True
-
-    # -- internals: motion -------------------------------------------------------------------
-
-    def _rates(self) -> tuple[float, float, float, float]:
-        """(profile velocity, acceleration, deceleration, quick stop deceleration), limited."""
-        s = self.store
-        a_max = max(s.get_int(0x60C5), 1)
-        v = min(s.get_int(0x6081), s.get_int(0x607F))
-        acc = min(max(s.get_int(0x6083), 1), a_max)
-        dec = min(max(s.get_int(0x6084), 1), a_max)
-        qs = min(max(s.get_int(0x6085), 1), a_max)
-        return float(max(v, 0)), float(acc), float(dec), float(qs)
-
-    def _velocity_goal(self) -> tuple[float, bool]:
-        """pv goal velocity (0 unless enabled and not halted) and whether 607Fh clamped it."""
-        if self._state is not State.OPERATION_ENABLED or self._cw & CW.HALT:
-            return 0.0, False
-        v_max = self.store.get_int(0x607F)
-        vt = self.store.get_int(0x60FF)
-        goal = min(max(vt, -v_max), v_max)
-        return float(goal), goal != vt
-
-    def _plan(self) -> None:
-        """Replace the motion profile by the one the current state and mode call for."""
-        t = self._now
-        p, v = self._profile.state_at(t)
-        v_max, acc, dec, qs_dec = self._rates()
-        st = self._state
-        if st is State.OPERATION_ENABLED:
-            if self._mode is Mode.HOMING:
-                dec = float(max(self.store.get_int(0x609A), 1))
-            if self._cw & CW.HALT:
-                self._profile = plan_stop(t, p, v, dec)
-            elif self._mode is Mode.PROFILE_POSITION and self._target is not None \
-                    and not self._target_reached:
-                self._profile = plan_position(t, p, v, self._target, v_max, acc, dec)
-            elif self._mode is Mode.PROFILE_VELOCITY:
-                goal, self._clamped = self._velocity_goal()
-                self._profile = plan_velocity(t, p, v, goal, acc, dec)
-            else:
-                self._profile = plan_stop(t, p, v, dec)
-        elif st is State.QUICK_STOP_ACTIVE:
-            slow_down_ramp = self._quick_stop_option() in (1, 5)
-            self._profile = plan_stop(t, p, v, dec if slow_down_ramp else qs_dec)
-        elif st is State.FAULT_REACTION_ACTIVE:
-            self._profile = plan_stop(t, p, v, qs_dec)
-        else:
-            self._profile = hold(t, p)  # power stage off: no inertia is modelled
-
-    def _run_until(self, t: float) -> None:
-        """Run the events due up to ``t`` in order: self-test end, ends of ramps."""
-        while True:
-            if self._state is State.NOT_READY_TO_SWITCH_ON and self._self_test_until <= t:
-                self._now = max(self._now, self._self_test_until)
-                self._transition(*T_SELF_TEST_DONE)
-                continue
-            profile = self._profile
-            if profile.kind in (Kind.POSITION, Kind.STOP) and profile.end_time <= t:
-                self._now = max(self._now, profile.end_time)
-                self._profile_ended(profile)
-                continue
-            return
-
-    def _profile_ended(self, profile: Profile) -> None:
-        self._profile = hold(profile.end_time, profile.final_position)
-        st = self._state
-        if profile.kind is Kind.POSITION and st is State.OPERATION_ENABLED:
-            if self._buffer is not None:
-                self._target, self._buffer = self._buffer, None
-                self._update_ack()
-                self._plan()
-            else:
-                self._target_reached = True
-        elif st is State.QUICK_STOP_ACTIVE and self._quick_stop_option() not in (5, 6, 7, 8):
-            self._transition(*T_QUICK_STOP_DONE)
-        elif st is State.FAULT_REACTION_ACTIVE:
-            self._transition(*T_FAULT_REACTION_DONE)

@@ -4,6 +4,16 @@ The device logic is pure (:mod:`.device`); this module adds what a real link
 has: timing (a baud rate, the device's frame timeout of guide 2.2.7) and
 faults (dropped, corrupted or delayed reply bytes, silence, disconnects).
 One host at a time, like the real device.
+
+Pacing (``--baud``): a UART sends one byte every 10 bit times (8N1, guide
+2.2.6). A request is answered once its own bytes would have arrived
+(``start`` = when it was read + its length in byte times), and each answer
+byte is written when its stop bit would have left the wire: byte ``i`` at
+``start + (i + 1) * 10 / baud``, on an absolute schedule, so a late wake-up is
+caught up (every byte already due goes out at once) and does not accumulate.
+The last byte of an answer is timed by waiting on the clock for its final
+300 us, so the answer ends on time and the link runs at the wire's rate.
+The clock, the sleep and that spin are injectable for tests.
 """
 from __future__ import annotations
 
@@ -23,6 +33,7 @@ from ..capture import CaptureWriter
 log = logging.getLogger(__name__)
 
 BITS_PER_BYTE = 10  # 8N1: start, 8 data, stop (guide 2.2.6)
+SPIN = 0.0003  # see LinkServer._wait_until: longer than a typical late wake-up
 
 
 class Device(Protocol):
@@ -85,9 +96,15 @@ class LinkServer:
     """Runs the request/answer loop over one byte stream (fd or socket)."""
 
     def __init__(self, device: Device, options: Optional[LinkOptions] = None,
-                 trace: Optional[CaptureWriter] = None) -> None:
+                 trace: Optional[CaptureWriter] = None, *,
+                 clock: Callable[[], float] = time.perf_counter,
+                 sleep: Callable[[float], None] = time.sleep, spin: float = SPIN) -> None:
         self.device = device
         self.options = options or LinkOptions()
+        self._clock = clock
+        self._sleep = sleep
+        self.spin = spin  # seconds waited on the clock before an answer's last byte
+        self._wire_free = float("-inf")  # when the device's transmitter is idle again
         self.faults = FaultInjector(self.options)
         self.replies = 0
         # Records the link as the host sees it: TX host to device, RX as sent (faults included).
@@ -106,24 +123,47 @@ class LinkServer:
     def stopped(self) -> bool:
         return self._stop.is_set()
 
-    def _send(self, write: Callable[[bytes], None], reply: bytes) -> None:
+    def _send(self, write: Callable[[bytes], None], reply: bytes, not_before: float) -> None:
+        """Write ``reply``; with a baud rate, byte i once its stop bit is past ``not_before``."""
         opts = self.options
         if opts.delay:
-            time.sleep(opts.delay)
+            self._sleep(opts.delay)
         reply = self.faults.apply(reply)
         self._record("RX", reply)
-        if opts.baud:
-            # Pace the bytes like a UART would, in small bursts.
-            per_byte = BITS_PER_BYTE / opts.baud
-            start = time.perf_counter()
-            for i in range(0, len(reply), 16):
-                write(reply[i:i + 16])
-                due = start + (i + 16) * per_byte
-                pause = due - time.perf_counter()
-                if pause > 0:
-                    time.sleep(pause)
-        elif reply:
+        if not reply:
+            return
+        if not opts.baud:
             write(reply)
+            return
+        per_byte = BITS_PER_BYTE / opts.baud
+        start = max(not_before, self._clock()) if opts.delay else not_before
+        sent = 0
+        while sent < len(reply):
+            last = len(reply) - sent == 1
+            self._wait_until(start + (sent + 1) * per_byte, precise=last)
+            # Every byte whose stop bit is past by now: one, or more after a late wake-up.
+            done = int((self._clock() - start) / per_byte)
+            upto = min(len(reply), max(sent + 1, done))
+            write(reply[sent:upto])
+            sent = upto
+        self._wire_free = start + len(reply) * per_byte
+
+    def _wait_until(self, due: float, *, precise: bool) -> None:
+        """Sleep until ``due``; the last byte of an answer is timed to the microsecond.
+
+        A sleep wakes up late by a scheduler tick; that lateness would add to
+        every answer. So the last stretch before an answer's last byte (at most
+        ``spin`` seconds) is waited in a loop on the clock instead.
+        """
+        while True:
+            left = due - self._clock()
+            if left <= 0:
+                return
+            if precise and left <= self.spin:
+                while self._clock() < due:
+                    pass
+                return
+            self._sleep(left - self.spin if precise else left)
 
     def serve_stream(self, read: Callable[[float], Optional[bytes]],
                      write: Callable[[bytes], None]) -> None:
@@ -141,15 +181,19 @@ class LinkServer:
                     self.device.reset()  # a partial frame older than the frame timeout
                     last_rx = now
                 continue
+            # The request itself took wire time to arrive: its last byte is in at
+            # ``arrived``, and the answer starts then, or when the wire is free.
+            arrived = self._clock()
             if opts.baud:
-                # The request itself took wire time to arrive.
-                time.sleep(len(data) * BITS_PER_BYTE / opts.baud)
+                arrived += len(data) * BITS_PER_BYTE / opts.baud
+            not_before = max(arrived, self._wire_free)
             last_rx = now
             self._record("TX", data)
             for reply in self.device.receive(data):
                 if opts.silent:
                     continue
-                self._send(write, reply)
+                self._send(write, reply, not_before)
+                not_before = max(not_before, self._wire_free)
                 self.replies += 1
                 if opts.disconnect_after is not None and self.replies >= opts.disconnect_after:
                     return

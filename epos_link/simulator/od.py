@@ -84,9 +84,9 @@ ABORT_STORE = 0x08000020
 SAVE_SIGNATURE = 0x65766173
 LOAD_SIGNATURE = 0x64616F6C
 
-# Writable entries that are commands or process data rather than parameters,
+# Writable entries that are commands, process data or the error history rather than parameters,
 # so "Save all parameters" leaves them out (indices, every subindex).
-NOT_SAVED: frozenset[int] = frozenset({0x1010, 0x1011, 0x2100, 0x6040, 0x607A, 0x60FF})
+NOT_SAVED: frozenset[int] = frozenset({0x1003, 0x1010, 0x1011, 0x2100, 0x6040, 0x607A, 0x60FF})
 
 EDS_PATH: Path = Path(str(resources.files("epos_link.simulator") / "epos4.eds"))
 

@@ -1,0 +1,108 @@
+"""``--baud`` pacing of the simulated link (issue 10, item 9), on an injected clock.
+
+A UART at B baud sends one 8N1 byte (10 bits, guide 2.2.6) every 10/B
+seconds. The link must hand over answer byte i when its stop bit is past,
+``start + (i + 1) * 10 / B``, not in bursts followed by a pause. No wall
+clock is involved: the clock is a counter that the fake sleep advances.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import pytest
+
+from epos_link.simulator.link import LinkOptions, LinkServer
+
+ANSWER = bytes(range(20))
+
+
+class FakeTime:
+    def __init__(self, oversleep: float = 0.0) -> None:
+        self.now = 100.0
+        self.oversleep = oversleep  # a late wake-up, added to every sleep
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += seconds + self.oversleep
+
+
+class EchoDevice:
+    def __init__(self) -> None:
+        self.requests: list[bytes] = []
+
+    def receive(self, data: bytes) -> list[bytes]:
+        self.requests.append(data)
+        return [ANSWER]
+
+    def reset(self) -> None:
+        pass
+
+
+def serve_one(baud: Optional[int], fake: FakeTime, request: bytes = b"0123456789") -> list[tuple[float, bytes]]:
+    """One request through LinkServer; the writes with their (fake) times."""
+    writes: list[tuple[float, bytes]] = []
+    feed = [request]
+    server = LinkServer(EchoDevice(), LinkOptions(baud=baud), clock=fake.clock, sleep=fake.sleep,
+                        spin=0.0)  # a fake clock that only sleeps advance: no waiting on it
+
+    def read(timeout: float) -> Optional[bytes]:
+        return feed.pop() if feed else None  # then the host closes
+
+    server.serve_stream(read, lambda data: writes.append((fake.now, bytes(data))))
+    return writes
+
+
+@pytest.mark.parametrize("baud", [9600, 115200, 1_000_000])
+def test_each_byte_at_wire_speed(baud: int) -> None:
+    fake = FakeTime()
+    writes = serve_one(baud, fake)
+    per_byte = 10 / baud
+    request_done = 100.0 + 10 * per_byte  # the 10 request bytes arrive first
+    assert [data for _, data in writes] == [bytes([b]) for b in ANSWER]  # one byte per write
+    for i, (t, _) in enumerate(writes):
+        assert t == pytest.approx(request_done + (i + 1) * per_byte, rel=1e-9)
+
+
+def test_late_wake_ups_are_caught_up_not_accumulated() -> None:
+    baud = 115200
+    per_byte = 10 / baud
+    fake = FakeTime(oversleep=2.5 * per_byte)  # every wake-up 2.5 bytes late
+    writes = serve_one(baud, fake)
+    assert b"".join(data for _, data in writes) == ANSWER
+    start = 100.0 + 10 * per_byte  # the answer's schedule starts when the request is in
+    sent = 0
+    for t, data in writes:
+        sent += len(data)
+        assert t >= start + sent * per_byte - 1e-12  # never a byte before its wire time
+    # the whole answer takes its wire time plus one late wake-up, not 20 of them
+    assert writes[-1][0] - start <= len(ANSWER) * per_byte + 2.5 * per_byte + 1e-12
+    assert len(writes) < len(ANSWER)  # some writes carried several due bytes
+
+
+def test_without_baud_the_answer_goes_at_once() -> None:
+    fake = FakeTime()
+    writes = serve_one(None, fake)
+    assert writes == [(100.0, ANSWER)] and fake.sleeps == []
+
+
+def test_answers_follow_each_other_on_one_wire() -> None:
+    """Two frames answered from one read: the second starts when the first has left."""
+
+    class TwoAnswers(EchoDevice):
+        def receive(self, data: bytes) -> list[bytes]:
+            return [b"ab", b"cd"]
+
+    fake = FakeTime()
+    writes: list[tuple[float, bytes]] = []
+    feed = [b"12345"]
+    server = LinkServer(TwoAnswers(), LinkOptions(baud=10_000), clock=fake.clock, sleep=fake.sleep, spin=0.0)
+    server.serve_stream(lambda timeout: feed.pop() if feed else None,
+                        lambda data: writes.append((fake.now, bytes(data))))
+    per_byte = 10 / 10_000
+    start = 100.0 + 5 * per_byte
+    assert writes == [(pytest.approx(start + k * per_byte), bytes([c]))
+                      for k, c in enumerate(b"abcd", start=1)]
