@@ -105,28 +105,14 @@ def test_the_verdict_rules_are_pure() -> None:
 # -- reading the simulator and fake drives ----------------------------------------------------
 
 
-def sim_has_main_sensor() -> bool:
-    """The simulated EPOS4's EDS describes 3000h/05h (the issue-10 simulator adds it)."""
-    try:
-        load_object_dictionary()[0x3000][5]
-    except KeyError:
-        return False
-    return True
-
-
 def test_check_simulate_prints_a_row_per_axis_and_exits_0() -> None:
     out = cli("check", "--simulate", "--axes", "3")
+    assert out.returncode == 0, out.stdout + out.stderr
     rows = [line.split() for line in out.stdout.splitlines() if line[:1].isdigit()]
-    assert [r[:2] for r in rows] == [["1", "can1/1"], ["2", "can1/2"], ["3", "can1/3"]]
-    if sim_has_main_sensor():
-        assert out.returncode == 0, out.stdout + out.stderr
-        assert all(r[2] == "found" for r in rows)
-    else:
-        # Without 3000h/05h the check cannot confirm increments_per_revolution:
-        # it says so, and does not claim the axis answers as configured.
-        assert out.returncode == 1
-        assert all(" ".join(r[2:4]) == "units unknown" for r in rows)
-    assert all("EPOS4" in r for r in rows)
+    assert [r[:4] for r in rows] == [[str(n), f"can1/{n}", "found", "EPOS4"] for n in (1, 2, 3)]
+    # The simulator's main sensor (3000h/05h) is what --simulate configures.
+    ipr = load_object_dictionary()[0x3000][5].default
+    assert all(" ".join(r[-3:]) == f"rpm, {ipr} inc/rev" for r in rows)
     assert out.stderr == ""
 
 

@@ -287,3 +287,17 @@ def test_a_second_host_of_sim_tcp_is_refused_with_a_message() -> None:
         finally:
             first.close()
             link.close()
+
+
+@pytest.mark.parametrize("code, words", [
+    (errno.ENODEV, "ip -details link show"),
+    (errno.EAFNOSUPPORT, "modprobe can_raw"),
+    (errno.ENETDOWN, "sudo ip link set can7 up type can bitrate 500000"),
+])
+def test_socketcan_failures_say_what_to_do(code: int, words: str) -> None:
+    """python-can's SocketCAN errors are OSErrors; the bridge adds the usual remedy."""
+    from tcp_bridge.backends.canopen_bus import _reason
+
+    text = _reason(OSError(code, os.strerror(code)), "can7")
+    assert text.startswith(os.strerror(code)) and words in text
+    assert _reason(ValueError("bad bitrate"), "can7") == "bad bitrate"
