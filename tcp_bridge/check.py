@@ -32,8 +32,6 @@ import logging
 import sys
 from typing import Any, Callable, Dict, List, Optional
 
-from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
-
 from .axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
 from .errors import BridgeError, DeviceFailure
 from .parameters import ParameterStore
@@ -89,6 +87,8 @@ def _describe_device_name(node: Any) -> None:
     string it is read whole (segmented). The epos and sim backends default to
     an empty dictionary. This changes only the check's own node object.
     """
+    from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
+
     od = getattr(getattr(node, "sdo", None), "od", None)
     if isinstance(od, ObjectDictionary) and 0x1008 not in od:
         name = ODVariable("Manufacturer device name", 0x1008, 0)
