@@ -9,7 +9,12 @@ vendor-specific (class 0xFF) interfaces first. Some units enumerate as FTDI
 open through the serial transport; ``usb://`` says so when it finds one.
 
 The libusb backend comes from the ``libusb-package`` wheel when installed,
-else from pyusb's own search (a system libusb-1.0). On Linux the device node
+else from pyusb's own search (a system libusb-1.0). ``EPOS_LINK_LIBUSB=system``
+takes the system library even when the wheel is installed, and
+``EPOS_LINK_LIBUSB=/path/to/libusb-1.0.so`` a given one: the wheel's libusb
+watches hotplug through its own netlink socket, which sees no emulated events
+(``epos-link sim --usb``), while Debian's is built with udev and does. pyusb
+loads one libusb per process, so the choice holds for the whole process. On Linux the device node
 needs a udev rule for non-root users::
 
     # /etc/udev/rules.d/70-epos4.rules (before 73-seat-late.rules, which applies uaccess)
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import errno
 import math
+import os
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 from urllib.parse import parse_qs, urlsplit
@@ -66,13 +72,30 @@ def _usb() -> Any:
     return usb
 
 
+LIBUSB_ENV = "EPOS_LINK_LIBUSB"
+
+
 def default_backend() -> Any:
-    """libusb from the ``libusb-package`` wheel if installed, else None (pyusb searches)."""
-    try:
-        import libusb_package
-    except ImportError:
-        return None
-    return libusb_package.get_libusb1_backend()
+    """The libusb that ``EPOS_LINK_LIBUSB`` names (``system`` or a path); by default the
+    ``libusb-package`` wheel's if installed, else None (pyusb searches the system)."""
+    choice = os.environ.get(LIBUSB_ENV, "").strip()
+    if choice in ("", "bundled"):
+        try:
+            import libusb_package
+        except ImportError:
+            return None
+        return libusb_package.get_libusb1_backend()
+    _usb()
+    import usb.backend.libusb1 as libusb1
+
+    if choice == "system":
+        backend = libusb1.get_backend()  # ctypes' search: the system's libusb-1.0
+    else:
+        backend = libusb1.get_backend(find_library=lambda _name: choice)
+    if backend is None:
+        raise TransportError(f"{LIBUSB_ENV}={choice}: no usable libusb-1.0 there "
+                             "(use 'system', 'bundled' or the path of libusb-1.0.so)")
+    return backend
 
 
 @dataclass(frozen=True)
@@ -324,5 +347,5 @@ def open_usb(url: str, *, backend: Any = None, find: Optional[Callable[..., Any]
     return UsbTransport(serial=serial, index=index, backend=backend, find=find, url=url)
 
 
-__all__ = ["EPOS4_FTDI_ID", "EPOS4_USB_ID", "PERMISSION_HELP", "UDEV_RULE", "UsbDeviceInfo",
+__all__ = ["EPOS4_FTDI_ID", "EPOS4_USB_ID", "LIBUSB_ENV", "default_backend", "PERMISSION_HELP", "UDEV_RULE", "UsbDeviceInfo",
            "UsbTransport", "find_bulk_endpoints", "list_ftdi_ports", "list_usb_devices", "open_usb"]
