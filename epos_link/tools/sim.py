@@ -184,7 +184,8 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
             each.close()
         if trace_file:
             trace_file.close()
-        where = f"on {args.tcp[0]}:{args.tcp[1]}" if args.tcp else "on a pty"
+        where = (f"on {args.tcp[0]}:{args.tcp[1]}" if args.tcp
+                 else "as a USB device" if getattr(args, "usb", False) else "on a pty")
         # create_server() folds the address into strerror; name it once, here.
         why = os.strerror(exc.errno) if isinstance(exc, OSError) and exc.errno else exc
         print(f"epos-link sim: cannot listen {where}: {why}", file=sys.stderr)
