@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -30,6 +31,18 @@ def _host_port(text: str) -> tuple[str, int]:
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
     return host or "127.0.0.1", int(port)
+
+
+def own_id_conflict(node_id: int, drives: list[int]) -> Optional[str]:
+    """Why ``drives`` cannot sit behind an EPOS4 with ``node_id``, or None.
+
+    The gateway executes requests for its own id itself (guide chapter 5), so a
+    drive with that id could never be reached: refused rather than dropped.
+    """
+    if node_id in drives:
+        return (f"--drives {','.join(map(str, drives))}: {node_id} is the simulated EPOS4's own "
+                f"node id (--node-id {node_id}); the drives behind its gateway need other ids")
+    return None
 
 
 def _probability(text: str) -> float:
@@ -60,6 +73,11 @@ def _node_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected node ids like 2,3: {text!r}") from None
     if any(not 1 <= n <= 127 for n in nodes):
         raise argparse.ArgumentTypeError("node ids are 1..127")
+    twice = sorted({n for n in nodes if nodes.count(n) > 1})
+    if twice:
+        # Two nodes with one id share its SDO COB-IDs (CiA 301 pre-defined connection
+        # set: 600h/580h + node id), so neither could be asked alone.
+        raise argparse.ArgumentTypeError(f"node id {twice[0]} appears twice; each drive needs its own")
     return nodes
 
 
@@ -104,6 +122,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
+    conflict = own_id_conflict(args.node_id, args.drives)
+    if conflict:
+        print(f"epos-link sim: {conflict}", file=sys.stderr)
+        return 2
     from .. import simulator  # noqa: F401  (import cost only for this command)
     from ..simulator.core import Epos4Simulator
     from ..capture import CaptureWriter
@@ -136,7 +158,8 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         try:
             trace_file = open(args.trace, "w", encoding="utf-8")
         except OSError as exc:
-            print(f"epos-link sim: cannot write the trace: {exc}", file=sys.stderr)
+            print(f"epos-link sim: cannot write the trace {args.trace}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
             return 2
         trace = CaptureWriter(trace_file, comments=["source: epos-link sim (simulated EPOS4), "
                                                     "TX host to device, RX device to host"])
@@ -161,7 +184,11 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
             each.close()
         if trace_file:
             trace_file.close()
-        print(f"epos-link sim: cannot listen: {exc}", file=sys.stderr)
+        where = (f"on {args.tcp[0]}:{args.tcp[1]}" if args.tcp
+                 else "as a USB device" if getattr(args, "usb", False) else "on a pty")
+        # create_server() folds the address into strerror; name it once, here.
+        why = os.strerror(exc.errno) if isinstance(exc, OSError) and exc.errno else exc
+        print(f"epos-link sim: cannot listen {where}: {why}", file=sys.stderr)
         return 2
     stop = threading.Event()
 

@@ -17,8 +17,8 @@ watches hotplug through its own netlink socket, which sees no emulated events
 loads one libusb per process, so the choice holds for the whole process. On Linux the device node
 needs a udev rule for non-root users::
 
-    # /etc/udev/rules.d/99-epos4.rules
-    SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", MODE="0666"
+    # /etc/udev/rules.d/70-epos4.rules (before 73-seat-late.rules, which applies uaccess)
+    SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", TAG+="uaccess"
     # units that enumerate as FTDI 0403:A8B0 (serial port /dev/ttyUSBn):
     ACTION=="add", ATTR{idVendor}=="0403", ATTR{idProduct}=="a8b0", RUN+="/sbin/modprobe ftdi_sio", RUN+="/bin/sh -c 'echo 0403 a8b0 > /sys/bus/usb-serial/drivers/ftdi_sio/new_id'"
 
@@ -47,10 +47,14 @@ EPOS4_FTDI_ID = (0x0403, 0xA8B0)
 WRITE_TIMEOUT_MS = 1000
 _DRAIN_LIMIT = 64  # packets discarded at most by one reset_input
 
-UDEV_RULE = 'SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", MODE="0666"'
+# TAG+="uaccess": systemd-logind gives the user logged in at the seat access
+# (an ACL), no one else; a world-writable mode would give every local account the drive.
+# Headless machines use a group instead (docs/hardware.md).
+UDEV_RULES_FILE = "/etc/udev/rules.d/70-epos4.rules"  # must sort before 73-seat-late.rules
+UDEV_RULE = 'SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", TAG+="uaccess"'
 PERMISSION_HELP = (
     "permission denied on the EPOS4 USB device. On Linux add a udev rule:\n"
-    f"  echo '{UDEV_RULE}' | sudo tee /etc/udev/rules.d/99-epos4.rules\n"
+    f"  echo '{UDEV_RULE}' | sudo tee {UDEV_RULES_FILE}\n"
     "  sudo udevadm control --reload-rules && sudo udevadm trigger\n"
     "then unplug and replug the EPOS4 (or run as root). On Windows install a WinUSB driver "
     "for it (e.g. with Zadig).")
@@ -228,7 +232,11 @@ class UsbTransport(Transport):
         except (usb.core.USBError, OSError) as exc:
             if _is_permission(exc):
                 raise TransportError(PERMISSION_HELP) from exc
-            raise TransportError(f"cannot open the EPOS4 USB device: {exc}") from exc
+            if getattr(exc, "errno", None) == errno.EBUSY:
+                # libusb: LIBUSB_ERROR_BUSY, the interface is claimed by another process.
+                raise TransportError(f"cannot open {self.url}: the EPOS4 is busy (another program "
+                                     "has it open; stop that program first)") from exc
+            raise TransportError(f"cannot open {self.url}: {exc}") from exc
         self._dev = dev
         self._intf = number
         self._ep_in, self._ep_out = ep_in.bEndpointAddress, ep_out.bEndpointAddress
