@@ -223,7 +223,7 @@ class EposClient:
         decoder.reset()
         transport.write(frame)
         deadline = time.monotonic() + timeout
-        read, next_frame, feed = transport.read, decoder.next_frame, decoder.feed
+        read, next_frame, feed = transport.read_some, decoder.next_frame, decoder.feed
         heard = False
         while True:
             try:
@@ -242,7 +242,7 @@ class EposClient:
                     raise EposTimeoutError(
                         f"{what or 'request'}: no answer within {timeout:g} s"
                         + (f" ({held} bytes of an incomplete answer)" if held else ""))
-                data = read(READ_CHUNK, left)
+                data = read(READ_CHUNK, left, decoder.wanted)
                 if data:
                     heard = True
                     feed(data)

@@ -115,6 +115,15 @@ class FrameDecoder:
         """Bytes held that have not yet been returned or reported."""
         return len(self._buf) + len(self._junk) + len(self._raw)
 
+    @property
+    def wanted(self) -> int:
+        """At least how many more bytes the frame being received needs; 1 outside
+        a frame. Stuffing can only add bytes, so this never overstates; a reader
+        may wait for that many bytes before it looks again."""
+        if not self._in_frame:
+            return 1
+        return max(1, self._need - len(self._body) - len(self._buf))
+
     def feed(self, data: bytes) -> None:
         if self._eof:
             raise LocalProtocolError("feed() after close(): the input has ended")

@@ -45,7 +45,7 @@ from importlib import metadata
 from typing import (Any, Callable, Dict, Generator, List, Mapping, Optional, Sequence, Tuple,
                     Union)
 
-from .axes import AxisConfig, AxisTable, parameter_spec
+from .axes import AxisConfig, AxisTable, DeviceCode, parameter_spec
 from .parameters import ParameterStore
 from .commands import CommandSpec, resolve
 from .errors import InvalidCommand
@@ -88,6 +88,8 @@ class Job:
     share: Optional[Tuple[int, int]] = None  # (axis, command) of a read that may be shared
 
     def __call__(self) -> bytes:
+        if self.bus is not None and self.ops is not None and self.ops.drive is not None:
+            self.ops.drive.settle()  # a halt owed since a move's outcome was unknown
         return self.run()
 
 
@@ -304,6 +306,22 @@ class Engine:
         return ops.drive.require_enabled
 
     # -- execution -----------------------------------------------------------------------
+
+    async def probe(self) -> None:
+        """At start-up: read each EPOS4 axis's units (60A9h, 3000h/05h) and log them.
+
+        A velocity unit the bridge does not know, or a main sensor resolution other
+        than the axis's ``increments_per_revolution``, is logged at once rather
+        than found by the first velocity command; an absent drive is read later,
+        when a command needs it. Nothing is written.
+        """
+        jobs = [self._workers[ops.config.bus].submit(ops.probe_units)
+                for ops in self.axes.values()
+                if ops.port is not None and ops.config.bus in self._workers
+                and ops.device is DeviceCode.C_DC_MAXON_EPOS4]
+        for outcome in await asyncio.gather(*jobs, return_exceptions=True):
+            if isinstance(outcome, BaseException):
+                log.info("start-up probe: %s", outcome)
 
     async def execute(self, request: Request) -> bytes:
         """Prepare and run ``request``; returns the reply, raises on failure."""

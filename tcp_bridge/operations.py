@@ -71,6 +71,13 @@ SOFTWARE_LIMIT_ERROR: Final = 0x8A82
 LIMIT_INPUTS: Final = 0x3  # 60FDh bit 0 negative, bit 1 positive limit switch
 
 
+# The drive objects of the parameters (spec 4): what a power cycle takes back to
+# the saved values, unlike commands and targets (6040h, 607Ah, 60FFh, ...).
+PARAMETER_OBJECTS: Final = frozenset(
+    o for n in DRIVE_PARAMETERS for o in (parameter_spec(n).obj, parameter_spec(n).also_obj)
+    if o is not None) | {VELOCITY_UNIT}
+
+
 def detailed_error_from_code(code: int, inputs: int, software_limit_bit: int = 0) -> int:
     """Spec 4.b register from a CiA 301 / maxon error code (603Fh) and 60FDh inputs.
 
@@ -104,6 +111,19 @@ def detailed_error_from_code(code: int, inputs: int, software_limit_bit: int = 0
     return bits
 
 
+def check_resolution(addr: int, spec: CommandSpec, user: Number, raw: int,
+                     scaling: Scaling) -> None:
+    """A velocity or acceleration the drive's unit cannot carry: CAN if it would become
+    0, a warning if rounding changes it by more than 1% (rpm are coarse)."""
+    if user and not raw:
+        raise InvalidCommand(f"axis {addr}: {user} {spec.unit} is below the drive's "
+                             "resolution (it would be written as 0)", cmd=spec.number)
+    back = AxisOps.from_drive(spec, scaling, raw)
+    if user and abs(back - float(user)) > 0.01 * abs(float(user)):
+        log.warning("axis %d: %s = %s %s is written as %d in the drive's unit, which is %g %s",
+                    addr, spec.name, user, spec.unit, raw, back, spec.unit)
+
+
 class AxisOps:
     """The runtime of one axis: its drive (if any), its flags, and the command plans."""
 
@@ -121,11 +141,32 @@ class AxisOps:
         # values to put back before it moves on its own (tcp_bridge.moves).
         self.borrowed_profile: Dict[ObjectRef, int] = {}
         self._compare_parameters = True  # motion.Restore.ignore_differences
+        # The last value the bridge wrote to each object of this drive (any command,
+        # 81 included): what a drive that kept its RAM values still holds (rule 3).
+        self.written: Dict[ObjectRef, int] = {}
+        if port is not None and self.drive is not None:
+            port.on_write = lambda i, sub, value: self.written.__setitem__(ObjectRef(i, sub), value)
+            self.drive.listeners.append(self._on_drive_event)
+            self.drive.coasting = self._coasting
         nmt = getattr(getattr(port, "node", None), "nmt", None)
         if self.drive is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
             # CiA 301 7.2.8.3.2.4: a boot-up message is a heartbeat with state 0.
             nmt.add_heartbeat_callback(lambda state: drive.note_bootup() if state == 0 else None)
+
+    def _on_drive_event(self, event: str) -> None:
+        """motion.Cia402 listener: what a power cycle or reset makes stale."""
+        self.velocity_exponent, self.unit_error = None, None  # 60A9h: read it again
+        if event == "reset":  # the drive's RAM values are gone: nothing of ours is left
+            self.written.clear()
+            self.borrowed_profile.clear()
+
+    def _coasting(self) -> bool:
+        """Whether the axis still turns (606Ch above 1 rpm on an EPOS4, not 0 elsewhere)."""
+        raw = self._port().read(0x606C, 0)
+        if self.device is DeviceCode.C_DC_MAXON_EPOS4 and self.velocity_exponent is not None:
+            return abs(raw) > 10 ** -self.velocity_exponent
+        return raw != 0
 
     # -- helpers ---------------------------------------------------------------------
 
@@ -165,6 +206,29 @@ class AxisOps:
                 self.unit_error = f"axis {self.addr}: {exc}; velocity commands are refused"
                 log.error("%s", self.unit_error)
         raise DeviceFailure(self.unit_error)
+
+    def probe_units(self) -> None:
+        """Read 60A9h (logged by :meth:`_read_velocity_unit`) and compare the main
+        sensor resolution 3000h/05h with the axis table; read-only."""
+        port = self._port()
+        try:
+            self._read_velocity_unit()
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            pass  # an unknown unit is logged; the axis's velocity commands answer NAK
+        ipr = self.config.increments_per_revolution
+        try:
+            resolution = port.read(0x3000, 5)
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            return  # no such object: nothing to compare
+        if ipr is not None and resolution != ipr:
+            log.warning("axis %d: the drive's main sensor resolution (3000h/05h) is %d "
+                        "increments per revolution, the axis table says %d "
+                        "(increments_per_revolution): velocities would be wrong by %.3gx",
+                        self.addr, resolution, ipr, resolution / ipr)
 
     def _port(self) -> SdoPort:
         if self.port is None:
@@ -405,6 +469,8 @@ class AxisOps:
             raw = self.to_drive(spec, scaling, user)
         else:
             raw = int(user)
+        if spec.quantity is not Quantity.OTHER:
+            check_resolution(self.addr, spec, abs(user) if n == 5 else user, raw, scaling)
         size, signed = object_type(obj.index, obj.subindex)
         if not signed and raw < 0:
             raise InvalidCommand(f"{user} must not be negative for 0x{obj.index:04X}", cmd=n)
@@ -446,17 +512,15 @@ class AxisOps:
             self.borrowed_profile.pop(obj, None)
 
     def differs(self) -> Optional[str]:
-        """Why the drive no longer holds the stored parameters, None if it does (rule 3).
-
-        A profile a slave borrowed from its master is not a difference. An object
-        the drive does not have (an abort) is skipped.
-        """
-        port = self._port()
-        self.velocity_exponent = None  # 60A9h may be back at its saved value
+        """Why the drive no longer holds the parameter values the bridge wrote to it
+        in this session, None if it still does (motion rule 3). Only parameter
+        objects count (not the controlword or targets); one the drive does not
+        have (an abort) is skipped."""
         if not self._compare_parameters:
             return None
-        for obj, raw in self._stored_writes():
-            if obj in self.borrowed_profile:
+        port = self._port()
+        for obj, raw in list(self.written.items()):
+            if obj not in PARAMETER_OBJECTS:
                 continue
             try:
                 held = port.read(obj.index, obj.subindex)
@@ -465,7 +529,7 @@ class AxisOps:
             except DeviceFailure:
                 continue
             if held != raw:
-                return (f"0x{obj.index:04X}/{obj.subindex} holds {held}, the bridge wrote {raw}")
+                return f"0x{obj.index:04X}/{obj.subindex} holds {held}, the bridge wrote {raw}"
         return None
 
     def ignore_differences(self) -> None:

@@ -47,8 +47,9 @@ SDO_TIMEOUT_ABORT: Final = 0x05040000  # CiA 301: SDO protocol timed out (a gate
 class NodeSilent(DeviceFailure):
     """The node did not answer at all (timeout, link failure), as opposed to an abort.
 
-    A node that stops answering may have been power cycled, so its next enable
-    takes the power-cycle path again (spec 2.1 "On Enable -> Write Parameter").
+    Silence is not evidence of a power cycle (tcp_bridge.motion, rule 3): a
+    write that went unanswered may or may not have arrived, which the motion
+    sequences find out by reading the drive back (rule 4).
     """
 
 
@@ -89,6 +90,7 @@ class SdoPort:
         # told the end of every transfer, consulted by read_status().
         self.feed: Any = getattr(node, "status_feed", None)
         self._pdo_only = False  # within pdo_only(): no SDO transfer at all
+        self.on_write: Optional[Callable[[int, int, int], None]] = None  # (index, sub, value)
 
     def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
         """Call ``watcher(value)`` with every value of the object read through this port
@@ -170,6 +172,8 @@ class SdoPort:
             raise DeviceFailure(f"{self.name}: {value} does not fit 0x{index:04X}/{subindex} "
                                 f"({size} bytes, {'signed' if signed else 'unsigned'})") from None
         self.download(index, subindex, data)
+        if self.on_write is not None:
+            self.on_write(index, subindex, decode(data, size, signed))
 
     def nmt_reset(self) -> None:
         """NMT "reset node" (CiA 301 7.2.8.3.2.1), unconfirmed by definition."""

@@ -51,6 +51,9 @@ class LossyTransport(SimTransport):
         super().__init__(simulator)
         self._rule: Optional[Rule] = None
         self._to_drop = 0
+        self._silence_rule: Optional[Rule] = None
+        self._silent_node: Optional[int] = None
+        self._silent = False
         self.dropped: List[Message] = []
         self.requests: List[Message] = []
 
@@ -58,9 +61,24 @@ class LossyTransport(SimTransport):
         """The next ``count`` requests matching ``rule`` are executed, unanswered."""
         self._rule, self._to_drop = rule, count
 
+    def go_silent_after(self, rule: Rule, node: int) -> None:
+        """The next request matching ``rule`` is executed, unanswered; from then on
+        ``node`` hears nothing (requests are neither executed nor answered) until
+        :meth:`speak`, as a drive whose cable was pulled."""
+        self._silence_rule, self._silent_node = rule, node
+
+    def speak(self) -> None:
+        self._silence_rule, self._silent_node, self._silent = None, None, False
+
     def write(self, data: bytes) -> None:
         messages = [decode_request(f) for f in decode_frames(bytes(data))]
         self.requests.extend(messages)
+        if self._silent and any(getattr(m, "node", None) == self._silent_node for m in messages):
+            return  # the node hears nothing
+        if self._silence_rule is not None and any(self._silence_rule(m) for m in messages):
+            self._silent = True
+            self.simulator.receive(bytes(data))  # executed; its answer and the rest lost
+            return
         drop = (self._to_drop > 0 and self._rule is not None
                 and any(self._rule(m) for m in messages))
         if not drop:

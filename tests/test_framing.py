@@ -231,3 +231,33 @@ def test_a_bad_frame_ending_in_an_escaped_dle_is_reported_at_once() -> None:
         except CrcError as exc:
             errors.append(exc)
     assert len(errors) == 1
+
+
+def test_wanted_tells_a_reader_how_many_bytes_the_frame_still_needs() -> None:
+    # Guide 2.2.3 example answer: 90 02 00 04, then 8 data bytes and the CRC (2).
+    frame = reference_frame(0x00, bytes(8))
+    decoder = FrameDecoder()
+    assert decoder.wanted == 1  # outside a frame: anything may come
+    seen = []
+    for i, byte in enumerate(frame):
+        decoder.feed(bytes([byte]))
+        assert decoder.next_frame() is NEED_DATA or i == len(frame) - 1
+        seen.append(decoder.wanted)
+    # after DLE STX: opcode and length (2); after the length: 8 data + 2 CRC bytes
+    assert seen[1] == 2 and seen[3] == 10
+    assert all(w >= 1 for w in seen)
+    assert all(seen[i] <= len(frame) - 1 - i or seen[i] == 1 for i in range(len(frame)))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 255), st.binary(max_size=40).map(lambda b: b + b"\0" * (len(b) % 2)))
+def test_wanted_never_overstates_what_is_left(opcode: int, data: bytes) -> None:
+    # A reader that waits for `wanted` bytes must never wait for bytes that will
+    # not come: stuffed DLEs (0x90 0x90) can only make the rest longer.
+    frame = reference_frame(opcode, data)
+    decoder = FrameDecoder()
+    for i, byte in enumerate(frame):
+        decoder.feed(bytes([byte]))
+        decoder.next_frame()
+        left = len(frame) - 1 - i
+        assert 1 <= decoder.wanted and (decoder.wanted <= left or left == 0)

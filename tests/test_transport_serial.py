@@ -137,3 +137,30 @@ def test_client_over_pty_times_out_on_a_silent_device() -> None:
         with pytest.raises(EposTimeoutError):
             client.read_object(1, 0x6064, 0)
         client.close()
+
+
+def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire() -> None:
+    # At 115200 baud a byte takes 10 / 115200 s (8N1, guide 2.2.6). With 9 bytes
+    # wanted and 1 already received, 7 more are certainly still on the wire.
+    import pty as pty_module
+
+    master, slave = pty_module.openpty()
+    try:
+        link = open_serial(os.ttyname(slave), baudrate=115200)
+        pauses: list = []
+        link._sleep = pauses.append
+        os.write(master, b"\x90\x02")
+        deadline = time.monotonic() + 5
+        while not link.read_some(1, 0.0, wanted=1) and time.monotonic() < deadline:
+            pass  # take one byte, leave one waiting
+        assert link.read_some(16, 1.0, wanted=9) == b"\x02"
+        assert pauses == [pytest.approx(7 * 10 / 115200)]
+        os.write(master, b"\x00\x04")  # bytes already there: no pause
+        time.sleep(0.05)
+        pauses.clear()
+        assert link.read_some(16, 1.0, wanted=3) == b"\x00\x04"
+        assert pauses == []
+        link.close()
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -24,6 +24,12 @@ class Transport(abc.ABC):
         """Return 1..max_bytes bytes as soon as any are available, or b"" when
         ``timeout`` seconds pass with nothing received."""
 
+    def read_some(self, max_bytes: int, timeout: float, wanted: int = 1) -> bytes:
+        """:meth:`read`, knowing that at least ``wanted`` more bytes are due (the
+        known rest of a frame). A link that knows its wire speed may wait for
+        them instead of waking up for every byte; by default this is :meth:`read`."""
+        return self.read(max_bytes, timeout)
+
     def reset_input(self) -> None:
         """Discard whatever has been received and not yet read."""
 

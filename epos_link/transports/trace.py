@@ -54,8 +54,11 @@ class TracingTransport(Transport):
         self._record(Direction.TX, data)
 
     def read(self, max_bytes: int, timeout: float) -> bytes:
+        return self.read_some(max_bytes, timeout)
+
+    def read_some(self, max_bytes: int, timeout: float, wanted: int = 1) -> bytes:
         try:
-            data = self.inner.read(max_bytes, timeout)
+            data = self.inner.read_some(max_bytes, timeout, wanted)
         except TransportError as exc:
             self._comment(f"RX failed: {exc}")
             raise

@@ -23,6 +23,8 @@ required.
 """
 from __future__ import annotations
 
+import errno
+import os
 from typing import Any, Callable, Dict, Optional, Sequence
 
 import canopen
@@ -53,6 +55,24 @@ def _pdo_settings(bus: str, options: Dict[str, Any]) -> Optional[PdoSettings]:
         return PdoSettings(**{k: float(v) for k, v in given.items()})
     except ValueError as exc:
         raise ConfigError(f"bus {bus}: {exc}") from None
+
+
+# What a SocketCAN failure usually means on Linux (docs/hardware.md, "SocketCAN").
+_HINTS: Dict[int, str] = {
+    errno.EAFNOSUPPORT: "no SocketCAN here: sudo modprobe can_raw; a container needs the "
+                        "host's CAN interfaces",
+    errno.ENODEV: "no such CAN interface (ip -details link show; is the adapter plugged in?)",
+    errno.ENETDOWN: "the interface is down: sudo ip link set {channel} up type can bitrate 500000",
+}
+
+
+def _reason(exc: BaseException, channel: Any) -> str:
+    """The adapter's error in the OS's words, with a hint for the usual SocketCAN cases."""
+    code = getattr(exc, "errno", None)
+    if isinstance(code, int) and code > 0:
+        hint = _HINTS.get(code)
+        return os.strerror(code) + (f" ({hint.format(channel=channel)})" if hint else "")
+    return str(exc)
 
 
 def object_dictionary(eds: Any, node_id: int) -> Any:
@@ -90,7 +110,7 @@ class CanopenBackend:
         except Exception as exc:  # python-can raises CanError, OSError, ValueError, ImportError...
             raise ConfigError(f"bus {bus.name}: cannot open CAN interface "
                               f"{options.get('interface', '(python-can default)')} "
-                              f"{options.get('channel', '')}: {exc}") from None
+                              f"{options.get('channel', '')}: {_reason(exc, options.get('channel', 'can0'))}") from None
         self.nodes: Dict[int, FedNode] = {}
 
     def node(self, node_id: int) -> FedNode:
