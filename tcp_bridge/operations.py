@@ -283,23 +283,27 @@ class AxisOps:
         if n == 99 or n == 91:
             raise AssertionError("global commands are answered by the engine")
         port = self._port()
-        scaling = self.scaling()
         if n == 4:
             return lambda: int(self._drive().state() is State.OPERATION_ENABLED)
         if n == 7:
             return lambda: port.read(0x6060, 0)
         if n == 11:
             return self._read_detailed_error
+        # Only the reads that convert a position build the axis's scaling: a status
+        # poll (R10, R82...) does not pay for it (issue 14: many clients polling).
         if n == 12:
+            scaling = self.scaling()
             index = 0x6062 if self.device is DeviceCode.C_DC_NANOTEC else 0x6064
             return lambda: scaling.position_from_drive(port.read_status(index, 0))
         if n == 13:
+            scaling = self.scaling()
             return lambda: scaling.from_drive(port.read(0x6067, 0))
         if n == 14:
             return lambda: self.drive_scaling().velocity_from_drive(port.read_status(0x606C, 0))
         if n == 18:
             return lambda: port.read(0x1001, 0)
         if n in (33, 34):
+            scaling = self.scaling()
             obj = spec.object_for(scaling.inversion)
             assert obj is not None
             return lambda: scaling.position_from_drive(port.read(obj.index, obj.subindex))

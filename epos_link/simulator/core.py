@@ -82,6 +82,12 @@ class SimulatedDrive:
         self.lock = threading.RLock()
         for name in ("read", "write"):
             setattr(self.store, name, _locked(self.lock, getattr(self.store, name)))
+        write = self.store.write
+
+        def write_and_touch(index: int, subindex: int, data: bytes) -> None:
+            write(index, subindex, data)
+            self.tpdo.touch()  # a quiet drive samples its PDO data at the next tick
+        self.store.write = write_and_touch  # type: ignore[method-assign]
 
     def attach(self, node: canopen.LocalNode, network: canopen.Network) -> None:
         """Serve CAN SDO through ``node`` on ``network``, silent while NMT Stopped."""
@@ -107,6 +113,8 @@ class SimulatedDrive:
             if self.nmt_state is not NmtState.OPERATIONAL or network is None:
                 self.tpdo.reset()
                 return
+            if not self.tpdo.wants_sample(now):
+                return  # at rest and untouched (epos_link.simulator.pdo, QUIET)
             self.drive.sync()
             for cob_id, data in self.tpdo.due(now):
                 network.send_message(cob_id, data)
@@ -150,6 +158,7 @@ class SimulatedDrive:
     def _set_state(self, state: NmtState) -> None:
         self.nmt_state = state
         self.drive.remote = state is NmtState.OPERATIONAL  # statusword bit 9
+        self.tpdo.touch()
 
 
 class Epos4Simulator:

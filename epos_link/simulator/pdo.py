@@ -30,7 +30,11 @@ Transmission, with what is **chosen** where CiA 301 leaves it to the device:
   (if not 0); and at once on entering Operational (chosen);
 * the drive samples its mapped objects every ``tick`` seconds (default 2 ms,
   chosen: a real EPOS4 samples in its control cycle); a change is sent up to
-  one tick late;
+  one tick late. A drive whose PDO data did not change at the last sample, and
+  that got no SDO write since, is sampled only every ``QUIET`` seconds (10 ms)
+  and when an event timer is due (chosen, to keep idle drives cheap: what
+  changes at rest without a write, such as the end of the self test or a fault
+  injected through the Python API, is sent up to 10 ms late);
 * sampled and sent under the drive's lock: a PDO received after the answer to
   an SDO write shows the drive after that write (the order the bridge's PDO
   reads rely on, ``tcp_bridge.pdo_status``).
@@ -59,6 +63,7 @@ COB_ID_MASK: Final = 0x1FFFFFFF
 EVENT_DRIVEN: Final = frozenset({254, 255})
 TICK: Final = 0.002  # seconds between samples (chosen, see the module docstring)
 MAX_ENTRIES: Final = 8
+QUIET: Final = 0.01  # seconds between samples of a drive at rest (chosen, see above)
 
 
 @dataclass
@@ -88,6 +93,7 @@ class TransmitPdos:
             n for n in range(512) if 0x1800 + n in store.od and 0x1A00 + n in store.od)
         self._sent: Dict[int, _Sent] = {n: _Sent() for n in self.numbers}
         self._plans: Optional[Tuple[_Plan, ...]] = None  # None: read the objects again
+        self._next_sample = float("-inf")  # a quiet drive is sampled again at this time
         for n in self.numbers:
             com, mapping = 0x1800 + n, 0x1A00 + n
             store.add_write_hook(com, 1, lambda v, n=n: self._check_cob_id(n, v))
@@ -99,6 +105,13 @@ class TransmitPdos:
 
     def _changed(self) -> None:
         self._plans = None  # the hook runs before the value is stored: plan again next time
+
+    def touch(self) -> None:
+        """An SDO write reached the drive: sample at the next tick."""
+        self._next_sample = float("-inf")
+
+    def wants_sample(self, now: float) -> bool:
+        return now >= self._next_sample
 
     def _mapping_subs(self, index: int) -> List[int]:
         return sorted(getattr(self.store.od[index], "subindices", {}))
@@ -150,6 +163,7 @@ class TransmitPdos:
         """Not Operational, or reset (the objects may be back at their defaults):
         nothing sent; on entering Operational every PDO goes out."""
         self._plans = None
+        self._next_sample = float("-inf")
         for sent in self._sent.values():
             sent.data, sent.at = None, float("-inf")
 
@@ -173,14 +187,19 @@ class TransmitPdos:
             self._plans = self._plan()
         out: List[Tuple[int, bytes]] = []
         get = self.store.get
+        quiet, next_sample = True, now + QUIET
         for plan in self._plans:
             data = b"".join(var.encode_raw(get(var.index, var.subindex))[:size]
                             for var, size in plan.objects)
             sent = self._sent[plan.number]
+            quiet = quiet and data == sent.data
             changed = data != sent.data and now - sent.at >= plan.inhibit
             if changed or (plan.timer > 0 and now - sent.at >= plan.timer):
                 sent.data, sent.at = data, now
                 out.append((plan.cob_id, data))
+            if plan.timer > 0:
+                next_sample = min(next_sample, sent.at + plan.timer)
+        self._next_sample = next_sample if quiet else float("-inf")
         return out
 
 
