@@ -364,6 +364,8 @@ class Engine:
         port = job.ops.port if job.ops is not None and job.share is not None else None
         if port is None or getattr(port, "feed", None) is None:
             return None
+        if job.ops is not None and getattr(job.ops.drive, "halt_owed", False):
+            return None  # the job sends that halt first (Job.__call__), on the bus worker
         return lambda: port.pdo_only(job)  # type: ignore[union-attr]
 
     def _close_shared(self, job: Job) -> None:
