@@ -27,8 +27,9 @@ from epos_link.simulator.transport import SimTransport
 from tcp_bridge.axes import AxisTable, BusConfig, simulated_increments_per_revolution
 from tcp_bridge.backends.epos import EposBackend
 from tcp_bridge.engine import Engine
-from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.protocol import Reply, Status
 from tcp_bridge.server import BridgeServer, ServerOptions
+from tests.helpers import psi_ask
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,
           "poll_interval": 0.002}
@@ -146,13 +147,7 @@ class SimBridge:
     # -- a client's view -------------------------------------------------------------------
 
     def ask(self, line: str) -> Reply:
-        self.sock.sendall(line.encode() + b"\r")
-        data = b""
-        while len(data) < REPLY_SIZE:
-            chunk = self.sock.recv(REPLY_SIZE - len(data))
-            assert chunk, "bridge closed the connection"
-            data += chunk
-        return decode_reply(data)
+        return psi_ask(self.sock, line)
 
     def ok(self, *lines: str) -> str:
         value = ""

@@ -29,8 +29,9 @@ from epos_link.simulator.link import PtyLink
 from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
 from tcp_bridge.commands import COMMANDS
 from tcp_bridge.engine import build_engine
-from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.protocol import Reply, Status
 from tcp_bridge.server import BridgeServer, ServerOptions
+from tests.helpers import psi_ask
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.02,
           "poll_interval": 0.002}
@@ -72,13 +73,7 @@ class Bridge:
         self.sock = socket.create_connection(self.server.addresses[0], timeout=10)
 
     def ask(self, line: str) -> Reply:
-        self.sock.sendall(line.encode() + b"\r")
-        data = b""
-        while len(data) < REPLY_SIZE:
-            chunk = self.sock.recv(REPLY_SIZE - len(data))
-            assert chunk, "bridge closed the connection"
-            data += chunk
-        return decode_reply(data)
+        return psi_ask(self.sock, line)
 
     def ok(self, line: str) -> str:
         reply = self.ask(line)
