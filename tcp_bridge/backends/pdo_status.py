@@ -44,16 +44,17 @@ are answered from the newest PDO if
 Why not "received after the request arrived" as for shared reads: that means
 waiting for the next PDO, up to the event timer, for every poll. A PDO is sent
 on every change, so the newest one *is* the drive's value at the request,
-except for a change in flight (one CAN frame; for position and velocity up to
-the inhibit time): the staleness is bounded and documented, and the bus is not
-touched. (The change in flight is the inhibit time at most: 10 ms by default.)
-Everything that changes state (moves, enables, S04, S16, S17) still
+except for a change in flight (one CAN frame, plus at most one inhibit time:
+10 ms by default): the staleness is bounded and documented, and the bus is
+not touched. Everything that changes state (moves, enables, S04, S16, S17) still
 reads the statusword by SDO (:mod:`tcp_bridge.motion`) and waits for the
 drive's own acknowledgement, exactly as without PDOs.
 
 A statusword taken from a PDO goes to the same watcher as one read by SDO
 (:meth:`tcp_bridge.sdo.SdoPort.read_status`: :class:`tcp_bridge.motion.Cia402`
-sees every statusword a poll returns, on the bus worker's thread).
+sees every statusword a poll returns). That happens on the bus worker's thread,
+or on the event loop while the worker has nothing queued or running
+(:mod:`tcp_bridge.shared_reads` rule 5), so never on two threads at once.
 
 A drive that refuses the mapping (an SDO abort) stays on SDO, with one log
 line. After a boot-up message (power cycle, NMT reset) the drive's mapping is
