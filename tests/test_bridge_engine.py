@@ -971,10 +971,10 @@ def test_16_and_17_take_1_only() -> None:
 
 
 def test_the_start_up_probe_logs_units_and_a_resolution_mismatch(caplog: Any) -> None:
-    engine, nodes = epos4(4096)  # the fake drive's 3000h/05h is 2048
+    engine, nodes = epos4(4096)  # the fake drive's 3000h/05h is 2000
     caplog.set_level("INFO")
     asyncio.run(engine.probe())
     assert "velocity unit 0x00B44700" in caplog.text
-    assert "main sensor resolution (3000h/05h) is 2048" in caplog.text
+    assert "main sensor resolution (3000h/05h) is 2000" in caplog.text
     assert downloads(nodes[1]) == []  # read-only
     engine.close()
