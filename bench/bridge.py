@@ -20,6 +20,24 @@ clients do), so the clients do not share the bridge's interpreter lock.
    answer, 10 bits a byte at the baud rate, as many per second as the wire
    carries. Goal: at least 90% of it (one client; issue 10).
 
+3. Status polling (issue 14): 8 clients polling R10 and R12, with for each row
+   commands/s, p50, p99 and SDO transfers per command (counted at each node's
+   ``sdo.upload``/``download``):
+
+   * the ``epos`` backend over a pty at 115200 baud, all 8 clients on one axis
+     (R10), once for the EPOS4 itself and once for a drive behind its gateway:
+     identical reads waiting in the queue share one transfer
+     (``tcp_bridge.shared_reads``). Goal: at least 5x the 245 commands/s
+     measured before shared reads (issue 14);
+   * the ``canopen`` backend on the simulator's virtual CAN bus, 8 axes, each
+     client on its own axis alternating R10 and R12, without and with
+     ``pdo = true``. Goals with PDOs: at least 10x the commands/s without,
+     p50 under 1 ms, fewer than 0.1 SDO transfers per command. The simulator
+     runs in the bridge's process (a python-can virtual bus does not cross
+     processes), so it shares the interpreter lock with the bridge. A last row
+     is the ceiling: the same clients on the ``instant`` backend (fake drives
+     that answer at once), i.e. the bridge's own cost per command.
+
 Figures are medians over ``--runs`` runs; after each row, whether each goal is
 met.
 """
@@ -46,6 +64,11 @@ GOAL_P50_MS = 0.5
 GOAL_RATE = 5000.0
 GOAL_ADDED = 5.0  # percent of the backend's time per command
 GOAL_WIRE = 90.0  # percent of the wire-limited R10 rate (issue 10)
+BEFORE_SHARED = 245.0  # cmd/s, 8 clients R10 on the epos backend at 115200 (issue 14)
+GOAL_SHARED = 5.0  # times BEFORE_SHARED
+GOAL_PDO_GAIN = 10.0  # times the commands/s without PDOs
+GOAL_PDO_P50_MS = 1.0
+GOAL_PDO_SDO = 0.1  # SDO transfers per command
 
 
 # --- clients (child process) ------------------------------------------------------------
@@ -255,6 +278,108 @@ def wire_rate(baud: int) -> float:
     return baud / (10 * (len(request) + len(answer)))
 
 
+# --- status polling: shared reads and PDO-fed status (issue 14) -----------------------------
+
+
+class SdoCounter:
+    """Counts the SDO transfers of some nodes (wraps each node's sdo.upload/download)."""
+
+    def __init__(self, nodes: Sequence[Any]) -> None:
+        self.count = 0
+        for node in nodes:
+            sdo = node.sdo
+            for name in ("upload", "download"):
+                setattr(sdo, name, self._counting(getattr(sdo, name)))
+
+    def _counting(self, fn: Any) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            self.count += 1
+            return fn(*args, **kwargs)
+        return call
+
+
+def polled(served: Served, counter: SdoCounter, per_client: List[List[bytes]], seconds: float,
+           runs: int) -> Tuple[float, float, float, float]:
+    """(commands/s, p50 ms, p99 ms, SDO transfers per command), medians of ``runs``."""
+    results = []
+    for _ in range(runs):
+        before = counter.count
+        rate, p50, p99 = load(served.port, per_client, seconds)
+        results.append((rate, p50, p99, (counter.count - before) / max(1.0, rate * seconds)))
+    return tuple(statistics.median(r[i] for r in results) for i in range(4))  # type: ignore[return-value]
+
+
+def status_row(label: str, rate: float, p50: float, p99: float, sdo: float) -> None:
+    print(f"  {label:<34} {rate:>9.0f} cmd/s   p50 {p50:7.3f} ms   p99 {p99:7.3f} ms   "
+          f"{sdo:6.3f} SDO/cmd")
+
+
+def bench_shared(seconds: float, runs: int, baud: int) -> None:
+    print(f"status polling, epos backend over a pty at {baud} baud, 8 clients R10 on one axis "
+          f"(shared reads); goal >= {GOAL_SHARED:g}x {BEFORE_SHARED:.0f} cmd/s")
+    sim, path = start_simulator(baud)
+    engine = build_engine(table({"backend": "epos", "url": path, "baudrate": baud,
+                                 "gateway_node_id": 1}, 2))
+    counter = SdoCounter([engine.axes[a].port.node for a in (1, 2)])  # type: ignore[union-attr]
+    served = Served(engine)
+    try:
+        for axis, what in ((1, "EPOS4"), (2, "behind gateway")):
+            for clients in (1, 8):
+                rate, p50, p99, sdo = polled(served, counter, [[b"%dR10\r" % axis]] * clients,
+                                             seconds, runs)
+                status_row(f"axis {axis} ({what}), {clients} client{'s' if clients > 1 else ''}",
+                           rate, p50, p99, sdo)
+                if clients > 1:
+                    verdict((f">= {GOAL_SHARED * BEFORE_SHARED:.0f} cmd/s "
+                             f"({rate / BEFORE_SHARED:.1f}x)",
+                             rate >= GOAL_SHARED * BEFORE_SHARED))
+    finally:
+        served.close()
+        sim.terminate()
+        sim.wait(10)
+
+
+def bench_pdo(seconds: float, runs: int, axes: int = 8) -> None:
+    from epos_link.simulator.core import Epos4Simulator
+
+    print(f"status polling, canopen backend on the simulator's virtual CAN bus, {axes} clients "
+          f"each on its own axis, R10/R12; goals with pdo: >= {GOAL_PDO_GAIN:g}x without, "
+          f"p50 < {GOAL_PDO_P50_MS:g} ms, < {GOAL_PDO_SDO:g} SDO/cmd")
+    per_client = [[b"%dR10\r" % a, b"%dR12\r" % a] for a in range(1, axes + 1)]
+    figures: Dict[bool, Tuple[float, float, float, float]] = {}
+    for pdo in (False, True):
+        sim = Epos4Simulator(100, range(1, axes + 1))  # the EPOS4 itself is node 100, unused
+        bus: Dict[str, Any] = {"backend": "canopen", "interface": "virtual",
+                               "channel": sim.channel, "receive_own_messages": False,
+                               "pdo": pdo}
+        engine = build_engine(table(bus, axes))
+        counter = SdoCounter([engine.axes[a].port.node for a in range(1, axes + 1)])  # type: ignore[union-attr]
+        served = Served(engine)
+        try:
+            if pdo:
+                feeds = engine.backends[0].pdo.feeds
+                until = time.monotonic() + 10
+                while not all(f.active for f in feeds.values()) and time.monotonic() < until:
+                    time.sleep(0.05)
+                time.sleep(0.2)  # the first PDOs of every drive
+            figures[pdo] = polled(served, counter, per_client, seconds, runs)
+            status_row(f"{'with' if pdo else 'without'} pdo", *figures[pdo])
+        finally:
+            served.close()
+            sim.close()
+    served = Served(build_engine(table({"backend": "instant"}, axes)))
+    try:
+        ceiling = median_run(lambda: load(served.port, per_client, seconds), runs)
+        row("ceiling: instant backend", *ceiling)
+    finally:
+        served.close()
+    rate, p50, _, sdo = figures[True]
+    gain = rate / figures[False][0]
+    verdict((f">= {GOAL_PDO_GAIN:g}x ({gain:.1f}x)", gain >= GOAL_PDO_GAIN),
+            (f"p50 < {GOAL_PDO_P50_MS:g} ms", p50 < GOAL_PDO_P50_MS),
+            (f"< {GOAL_PDO_SDO:g} SDO/cmd", sdo < GOAL_PDO_SDO))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=3.0, help="per measurement")
@@ -262,11 +387,18 @@ def main() -> None:
     ap.add_argument("--baud", type=int, default=115200)
     ap.add_argument("--skip-sim", action="store_true")
     ap.add_argument("--skip-instant", action="store_true")
+    ap.add_argument("--skip-status", action="store_true", help="skip the issue 14 rows")
+    ap.add_argument("--status-only", action="store_true", help="only the issue 14 rows")
     args = ap.parse_args()
+    if args.status_only:
+        args.skip_instant = args.skip_sim = True
     if not args.skip_instant:
         bench_instant(args.seconds, args.runs)
     if not args.skip_sim:
         bench_sim(args.seconds, args.runs, args.baud)
+    if not args.skip_status:
+        bench_shared(args.seconds, args.runs, args.baud)
+        bench_pdo(args.seconds, args.runs)
 
 
 if __name__ == "__main__":

@@ -68,7 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    from importlib.metadata import version  # the installed distribution, as pip shows it
+
     parser = build_parser()
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version('epos-link')}")
     args = parser.parse_args(argv)
     module = importlib.import_module(args._module)
     try:

@@ -1,16 +1,21 @@
-"""``tcp-bridge``: serve the PSI gateway protocol, or send one request to a gateway.
+"""``tcp-bridge``: serve the PSI gateway protocol, check an axis table, or send requests.
 
 ::
 
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
     tcp-bridge serve --simulate [--axes N]
+    tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
+    tcp-bridge --version
 
 Expected failures (a bad argument, a port in use, an unknown bind address, a
 bad axis table, an unreachable CAN adapter, a refused connection) print one
 line and exit with status 2; ``send`` exits 0 when every reply is ACK, 1
-otherwise. ``serve`` stops on SIGINT or SIGTERM, finishing the transfers in
+otherwise; ``check`` exits 0 when every axis answers as configured, 1
+otherwise. A request given to ``send`` with CR or LF inside is several
+requests, each printed with its own reply, as the gateway reads it (spec 2.2.1:
+one request per CR-terminated line). ``serve`` stops on SIGINT or SIGTERM, finishing the transfers in
 flight; a second signal exits at once (status 128 + signal number), waiting
 at most a second for the state file.
 """
@@ -39,6 +44,10 @@ if TYPE_CHECKING:
     from .server import ServerOptions
 
 PROG = "tcp-bridge"
+# argparse prints descriptions as they are: plain text, no reST markup.
+DESCRIPTION = ("Serve the PSI \"TCP-IP to CANopen gateway\" protocol (rev 2.3) to EPICS and "
+               "NICOS, check an axis table against the drives on its buses, or send requests "
+               "to a gateway.")
 
 
 def _fail(message: str) -> int:
@@ -200,16 +209,41 @@ def describe(reply: Reply) -> str:
     return f"{head}{value} {reply.status.name}"
 
 
-def _address(text: str) -> tuple:
+def _address(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit():
         raise ValueError(f"expected HOST:PORT, not {text!r}")
+    if not 1 <= int(port) <= 65535:
+        raise ValueError(f"{text!r}: port {int(port)} is not 1..65535")
     return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def address(text: str) -> str:
+    """argparse type of ``send``'s HOST:PORT (checked, kept as text for messages)."""
+    try:
+        _address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def split_requests(texts: Sequence[str]) -> List[str]:
+    """Each argument's CR- or LF-separated lines, stripped, empty ones dropped.
+
+    The gateway ends a request at CR (spec 2.2.1), and our server at LF too, so
+    ``"1R10\\n1R12"`` is two requests with two replies; sending it as one
+    would print the first reply and leave the second unread.
+    """
+    out = []
+    for text in texts:
+        out.extend(line.strip() for line in text.replace("\r", "\n").split("\n"))
+    return [line for line in out if line]
 
 
 def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[Reply]:
     """Send each request (CR appended) and decode its 30-byte reply."""
     host, port = _address(address)
+    requests = split_requests(requests)
     replies = []
     with socket.create_connection((host, port), timeout=timeout) as sock:
         for text in requests:
@@ -226,9 +260,13 @@ def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[R
 
 def _send(args: argparse.Namespace) -> int:
     try:
-        requests = [r.strip() for r in args.request]
+        requests = split_requests(args.request)
+        if not requests:
+            return _fail("no request to send (every argument is empty)")
         for r in requests:
-            r.encode("ascii")
+            if not r.isascii():
+                return _fail(f"request {r!r} is not ASCII (the gateway's requests are ASCII, "
+                             "spec 2.2.1)")
         replies = send(args.address, requests, args.timeout)
     except (ValueError, UnicodeError) as exc:
         return _fail(str(exc))
@@ -243,7 +281,8 @@ def _send(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION)
+    p.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("serve", help="serve the PSI gateway protocol (spec rev 2.3)")
     src = s.add_mutually_exclusive_group(required=True)
@@ -262,7 +301,8 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--maintenance-port", type=optional_port, default=1913,
                    help="maintenance port (default 1913; -1: none)")
     s.add_argument("--max-connections", type=positive_int, default=64, metavar="N",
-                   help="simultaneous clients; more are closed at once (default 64)")
+                   help="simultaneous clients (default 64); when all are taken, a new "
+                        "client takes the slot of the one idle longest")
     s.add_argument("--idle-timeout", type=positive_seconds, default=None, metavar="SECONDS",
                    help="close a connection that sent no request for this long; bytes that "
                         "do not complete a request do not count (default 60, or [bridge] "
@@ -274,21 +314,50 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
     s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
     s.add_argument("-v", "--verbose", action="store_true", help="log connections")
+    c = sub.add_parser("check", help="read-only pre-flight: does every axis answer as configured?",
+                       description="Read each configured drive's name, identity, CiA 402 state, "
+                                   "mode, position and units, compare them with the axis table, "
+                                   "print one row per axis with its verdict. Writes nothing to "
+                                   "any drive. Exit 0 when every axis answers as configured, "
+                                   "1 otherwise.")
+    from .check import add_arguments as check_arguments
+    check_arguments(c)
     t = sub.add_parser("send", help="send requests to a gateway and print the replies")
-    t.add_argument("address", metavar="HOST:PORT")
-    t.add_argument("request", nargs="+", help='e.g. "1R10" or "3S02=12"')
-    t.add_argument("--timeout", type=float, default=10.0)
+    t.add_argument("address", metavar="HOST:PORT", type=address)
+    t.add_argument("request", nargs="+",
+                   help='e.g. "1R10" or "3S02=12"; CR or LF inside one separates requests')
+    t.add_argument("--timeout", type=positive_seconds, default=10.0, metavar="SECONDS",
+                   help="bound for connecting and for each reply (default 10)")
     return p
+
+
+def version() -> str:
+    """The installed package version and the PSI protocol revision served."""
+    from importlib import metadata
+
+    try:
+        installed = metadata.version("epos-link")
+    except metadata.PackageNotFoundError:  # pragma: no cover - a bare checkout
+        installed = "0+unknown"
+    return f"{installed} (PSI TCP-IP to CANopen gateway protocol rev 2.3)"
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser().parse_args(argv)
     if args.command == "send":
         return _send(args)
+    if args.command == "check":
+        from .check import run as run_check
+
+        return run_check(args, prog=f"{PROG} check")
     level = logging.INFO if args.verbose or args.debug else logging.WARNING
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
     logging.getLogger("tcp_bridge.sdo").setLevel(logging.INFO)
+    if not args.verbose:
+        # canopen logs an absent node's SDO timeout as an error ("Transfer aborted
+        # by client"); the bridge already answers it NAK and says why with -v/91.
+        logging.getLogger("canopen").setLevel(logging.CRITICAL)
     try:
         return asyncio.run(_serve(args))
     except (ConfigError, BridgeError) as exc:

@@ -174,9 +174,11 @@ _TABLE: Tuple[CommandSpec, ...] = (
                 value_type=_F, user_units=True, needs_sdo=True, quantity=_V),
     CommandSpec(15, "Mode of operation display", True, False, _K.SDO, _o(0x6061), needs_sdo=True),
     # NMT has no confirmation (CiA 301), so there is nothing to NAK.
-    CommandSpec(16, "Reset Node", False, True, _K.ACTION, note="NMT reset node (CAN only)"),
+    # 16 and 17 are actions: only 1 asks for them ("3S16=0" must not reset a node).
+    CommandSpec(16, "Reset Node", False, True, _K.ACTION, choices=frozenset({1}),
+                note="NMT reset node (CAN only)"),
     CommandSpec(17, "Reset Error", False, True, _K.ACTION, _CONTROLWORD, needs_sdo=True,
-                note="fault reset in the controlword"),
+                choices=frozenset({1}), note="fault reset in the controlword"),
     CommandSpec(18, "General Error", True, False, _K.SDO, needs_sdo=True),
     CommandSpec(19, "Device Code", True, True, _K.PARAMETER, parameter=2,
                 choices=frozenset(range(5))),  # spec 3.5: C_DC_NOT_DEFINED .. C_DC_COBLEY_CAN
@@ -249,12 +251,16 @@ _TABLE: Tuple[CommandSpec, ...] = (
     # The object of 81 is whatever 80 selected; its data may be signed or unsigned.
     CommandSpec(81, "Perform SDO Access", True, True, _K.SDO, needs_sdo=True,
                 value_range=(INT32[0], UINT32[1]), note="object selected by command 80"),
-    # Statusword bits from table 4.a; the table names no end-switch bit, and
-    # bit 11 "Internal Limit Active" includes the position limit switches.
+    # Statusword bits from table 4.a. The table names no end-switch bit, and
+    # bit 11 "Internal Limit Active" is also set while a drive limits current or
+    # velocity, so 83 reads the limit switch inputs of 60FDh instead (bit 0
+    # negative, bit 1 positive; CiA 402-2 60FDh), see tcp_bridge.operations. The
+    # row keeps the spec's own column.
     CommandSpec(82, "Motion /Target reached", True, False, _K.STATUS_BIT, _STATUSWORD,
                 needs_sdo=True, bit=10, choices=frozenset({0, 1}), unit="0=motion 1=in target"),
     CommandSpec(83, "Endswitch hit", True, False, _K.STATUS_BIT, _STATUSWORD, needs_sdo=True,
-                bit=11, choices=frozenset({0, 1}), unit="0=no hit 1=switch hit"),
+                bit=11, choices=frozenset({0, 1}), unit="0=no hit 1=switch hit",
+                note="the spec's column; the bridge reads 60FDh bits 0 and 1"),
     CommandSpec(84, "Error Bit", True, False, _K.STATUS_BIT, _STATUSWORD, needs_sdo=True,
                 bit=3, choices=frozenset({0, 1}), unit="0=ok 1=error"),
     # The SDO column is "-", but writing every parameter is all SDO transfers.

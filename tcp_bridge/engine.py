@@ -31,6 +31,10 @@ unless every one can:
 
 A stop (S00=8, S90=0) is not gated: every axis is told to stop, whatever
 the others answer.
+
+Identical reads waiting in a bus's queue at the same time share one transfer
+(:mod:`tcp_bridge.shared_reads`, issue 14); every other request closes the
+open groups of the buses it touches, so a read after a write stays after it.
 """
 from __future__ import annotations
 
@@ -42,7 +46,7 @@ from importlib import metadata
 from typing import (Any, Callable, Dict, Generator, List, Mapping, Optional, Sequence, Tuple,
                     Union)
 
-from .axes import AxisConfig, AxisTable, ConfigError, parameter_spec
+from .axes import AxisConfig, AxisTable, ConfigError, DeviceCode, parameter_spec
 from .parameters import ParameterStore
 from .commands import CommandSpec, resolve
 from .errors import InvalidCommand
@@ -52,6 +56,7 @@ from .moves import Follower, plan_move, stored_profile
 from .operations import AxisOps
 from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
 from .sdo import SdoPort
+from .shared_reads import SHARE_WINDOW, SharedReads
 from .motion import Timing
 from .units import parse_value
 from .workers import BusWorker
@@ -83,11 +88,14 @@ class Job:
     gated: bool = False  # companions start only after this job succeeded (see steps())
     precheck: Tuple["Job", ...] = field(default_factory=tuple)  # before anything moves
     stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
+    share: Optional[Tuple[int, int]] = None  # (axis, command) of a read that may be shared
     # A stop or halt: tried even on a bus declared silent (tcp_bridge.health), because
     # a NAK without trying could leave an axis moving; it costs one timeout at most.
     urgent: bool = False
 
     def __call__(self) -> bytes:
+        if self.bus is not None and self.ops is not None and self.ops.drive is not None:
+            self.ops.drive.settle()  # a halt owed since a move's outcome was unknown
         return self.run()
 
 
@@ -143,7 +151,7 @@ class Engine:
 
     def __init__(self, table: AxisTable, nodes: Mapping[int, Any], *,
                  params: Optional[ParameterStore] = None, backends: Sequence[Any] = (),
-                 job_timeout: float = 60.0,
+                 job_timeout: float = 60.0, share_window: float = SHARE_WINDOW,
                  link_probes: Optional[Mapping[str, Callable[[], Any]]] = None,
                  health_clock: Callable[[], float] = time.monotonic,
                  **cia402_options: Any) -> None:
@@ -176,6 +184,13 @@ class Engine:
             self.axes[addr] = AxisOps(axis, self.params, port, timing, **cia402_options)
         self._workers: Dict[str, BusWorker] = {
             bus: BusWorker(bus, guard.maintain) for bus, guard in self.guards.items()}
+        self.shared: Dict[str, SharedReads] = {
+            bus: SharedReads(worker, window=share_window) for bus, worker in self._workers.items()}
+        for backend in self.backends:  # e.g. PDO mappings restored after a boot-up
+            attach = getattr(backend, "attach_worker", None)
+            worker = self._workers.get(getattr(backend, "name", None))  # type: ignore[arg-type]
+            if attach is not None and worker is not None:
+                attach(worker.post)
 
     # -- planning (event loop, no I/O) -------------------------------------------------
 
@@ -212,8 +227,9 @@ class Engine:
     def _prepare_read(self, request: ReadRequest, spec: CommandSpec, ops: AxisOps) -> Job:
         plan = ops.plan_read(spec)
         axis, cmd = request.axis, request.cmd
+        bus = self._bus(ops, spec)
         return Job(request, lambda: format_read_reply(axis, cmd, plan()),
-                   bus=self._bus(ops, spec), ops=ops)
+                   bus=bus, ops=ops, share=(axis, cmd) if bus is not None else None)
 
     def _prepare_write(self, request: Request, spec: CommandSpec, ops: AxisOps) -> Job:
         assert not isinstance(request, ReadRequest)
@@ -309,11 +325,30 @@ class Engine:
 
     # -- execution -----------------------------------------------------------------------
 
+    async def probe(self) -> None:
+        """At start-up: read each EPOS4 axis's units (60A9h, 3000h/05h) and log them.
+
+        A velocity unit the bridge does not know, or a main sensor resolution other
+        than the axis's ``increments_per_revolution``, is logged at once rather
+        than found by the first velocity command; an absent drive is read later,
+        when a command needs it. Nothing is written.
+        """
+        jobs = [self._workers[ops.config.bus].submit(
+                    self.guards[ops.config.bus].guarded(ops.probe_units, ops.config.node_id))
+                for ops in self.axes.values()
+                if ops.port is not None and ops.config.bus in self._workers
+                and ops.device is DeviceCode.C_DC_MAXON_EPOS4]
+        for outcome in await asyncio.gather(*jobs, return_exceptions=True):
+            if isinstance(outcome, BaseException):
+                log.info("start-up probe: %s", outcome)
+
     async def execute(self, request: Request) -> bytes:
         """Prepare and run ``request``; returns the reply, raises on failure."""
         return await self.run(self.prepare(request))
 
     async def run(self, job: Job) -> bytes:
+        if job.share is None:
+            self._close_shared(job)
         if job.bus is None and not job.companions:
             return job()  # nothing to wait for: answered on the loop
         loop = asyncio.get_running_loop()
@@ -323,9 +358,12 @@ class Engine:
             batch = next(plan)
             while True:
                 futures = [self._submit(j) for j in batch]
-                outcomes = await asyncio.wait_for(
-                    asyncio.gather(*futures, return_exceptions=True),
-                    max(deadline - loop.time(), 0.0))
+                if all(f.done() for f in futures):  # answered at once (a read from PDOs)
+                    outcomes: Sequence[Outcome] = [_result(f) for f in futures]
+                else:
+                    outcomes = await asyncio.wait_for(
+                        asyncio.gather(*futures, return_exceptions=True),
+                        max(deadline - loop.time(), 0.0))
                 batch = plan.send(list(outcomes))
         except StopIteration as done:
             return done.value  # type: ignore[no-any-return]
@@ -339,16 +377,32 @@ class Engine:
                     self._submit(axis_job.stop).add_done_callback(_log_halt)
             raise
 
+    @staticmethod
+    def _from_pdo(job: Job) -> Optional[Callable[[], bytes]]:
+        """A read of an axis fed by PDOs may be answered on the loop (shared_reads rule 5)."""
+        port = job.ops.port if job.ops is not None and job.share is not None else None
+        if port is None or getattr(port, "feed", None) is None:
+            return None
+        if job.ops is not None and getattr(job.ops.drive, "halt_owed", False):
+            return None  # the job sends that halt first (Job.__call__), on the bus worker
+        return lambda: port.pdo_only(job)  # type: ignore[union-attr]
+
+    def _close_shared(self, job: Job) -> None:
+        """Shared reads, rule 3: a read after this request does not join one before it."""
+        for j in (job, *job.companions, *job.precheck):
+            for bus in (j.bus, j.ops.config.bus if j.ops is not None else None):
+                if bus in self.shared:
+                    self.shared[bus].close_groups()
+
     def _submit(self, job: Job) -> "asyncio.Future[bytes]":
-        future: asyncio.Future[bytes]
+        future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
         if job.bus is not None:
             refusal = self._refusal(job)
             if refusal is None:
-                return self._workers[job.bus].submit(self._guarded(job))
-            future = asyncio.get_running_loop().create_future()
+                return self.shared[job.bus].submit(self._guarded(job), job.share,
+                                                   fast=self._from_pdo(job))
             future.set_exception(refusal)  # NAK at once: nothing queued, nothing sent
             return future
-        future = asyncio.get_running_loop().create_future()
         try:
             future.set_result(job())
         except Exception as exc:
@@ -388,6 +442,11 @@ class Engine:
                 backend.close()
             except Exception:  # closing one backend must not keep the others open
                 log.exception("closing backend %r failed", backend)
+
+
+def _result(future: "asyncio.Future[bytes]") -> Outcome:
+    error = future.exception()
+    return error if error is not None else future.result()
 
 
 def _node_of(job: Job) -> Optional[int]:

@@ -33,9 +33,10 @@ import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Sequence, Tuple
 
-from .commands import ObjectRef
+from .commands import COMMANDS, ObjectRef
 from .errors import DeviceFailure, InvalidCommand
 from .motion import HomingMove, Move, PositionMove, VelocityMove
+from .operations import check_resolution
 from .sdo import NodeSilent
 from .units import Number
 
@@ -82,7 +83,9 @@ def _what(ops: "AxisOps", how: int, direction: int, target: Optional[Number],
         if velocity is None:
             raise InvalidCommand(f"axis {ops.addr}: no velocity (S05) set", cmd=0)
         scaling = ops.scaling() if check_only else ops.drive_scaling()
-        return VelocityMove(scaling.velocity_to_drive(velocity * direction) * scaling.inversion)
+        raw = scaling.velocity_to_drive(velocity * direction) * scaling.inversion
+        check_resolution(ops.addr, COMMANDS[5], velocity, raw, scaling)
+        return VelocityMove(raw)
     if how == 9:
         return HomingMove()
     return None  # 8: stop

@@ -71,6 +71,13 @@ SOFTWARE_LIMIT_ERROR: Final = 0x8A82
 LIMIT_INPUTS: Final = 0x3  # 60FDh bit 0 negative, bit 1 positive limit switch
 
 
+# The drive objects of the parameters (spec 4): what a power cycle takes back to
+# the saved values, unlike commands and targets (6040h, 607Ah, 60FFh, ...).
+PARAMETER_OBJECTS: Final = frozenset(
+    o for n in DRIVE_PARAMETERS for o in (parameter_spec(n).obj, parameter_spec(n).also_obj)
+    if o is not None) | {VELOCITY_UNIT}
+
+
 def detailed_error_from_code(code: int, inputs: int, software_limit_bit: int = 0) -> int:
     """Spec 4.b register from a CiA 301 / maxon error code (603Fh) and 60FDh inputs.
 
@@ -104,6 +111,19 @@ def detailed_error_from_code(code: int, inputs: int, software_limit_bit: int = 0
     return bits
 
 
+def check_resolution(addr: int, spec: CommandSpec, user: Number, raw: int,
+                     scaling: Scaling) -> None:
+    """A velocity or acceleration the drive's unit cannot carry: CAN if it would become
+    0, a warning if rounding changes it by more than 1% (rpm are coarse)."""
+    if user and not raw:
+        raise InvalidCommand(f"axis {addr}: {user} {spec.unit} is below the drive's "
+                             "resolution (it would be written as 0)", cmd=spec.number)
+    back = AxisOps.from_drive(spec, scaling, raw)
+    if user and abs(back - float(user)) > 0.01 * abs(float(user)):
+        log.warning("axis %d: %s = %s %s is written as %d in the drive's unit, which is %g %s",
+                    addr, spec.name, user, spec.unit, raw, back, spec.unit)
+
+
 class AxisOps:
     """The runtime of one axis: its drive (if any), its flags, and the command plans."""
 
@@ -121,11 +141,32 @@ class AxisOps:
         # values to put back before it moves on its own (tcp_bridge.moves).
         self.borrowed_profile: Dict[ObjectRef, int] = {}
         self._compare_parameters = True  # motion.Restore.ignore_differences
+        # The last value the bridge wrote to each object of this drive (any command,
+        # 81 included): what a drive that kept its RAM values still holds (rule 3).
+        self.written: Dict[ObjectRef, int] = {}
+        if port is not None and self.drive is not None:
+            port.on_write = lambda i, sub, value: self.written.__setitem__(ObjectRef(i, sub), value)
+            self.drive.listeners.append(self._on_drive_event)
+            self.drive.coasting = self._coasting
         nmt = getattr(getattr(port, "node", None), "nmt", None)
         if self.drive is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
             # CiA 301 7.2.8.3.2.4: a boot-up message is a heartbeat with state 0.
             nmt.add_heartbeat_callback(lambda state: drive.note_bootup() if state == 0 else None)
+
+    def _on_drive_event(self, event: str) -> None:
+        """motion.Cia402 listener: what a power cycle or reset makes stale."""
+        self.velocity_exponent, self.unit_error = None, None  # 60A9h: read it again
+        if event == "reset":  # the drive's RAM values are gone: nothing of ours is left
+            self.written.clear()
+            self.borrowed_profile.clear()
+
+    def _coasting(self) -> bool:
+        """Whether the axis still turns (606Ch above 1 rpm on an EPOS4, not 0 elsewhere)."""
+        raw = self._port().read(0x606C, 0)
+        if self.device is DeviceCode.C_DC_MAXON_EPOS4 and self.velocity_exponent is not None:
+            return abs(raw) > 10 ** -self.velocity_exponent
+        return raw != 0
 
     # -- helpers ---------------------------------------------------------------------
 
@@ -165,6 +206,29 @@ class AxisOps:
                 self.unit_error = f"axis {self.addr}: {exc}; velocity commands are refused"
                 log.error("%s", self.unit_error)
         raise DeviceFailure(self.unit_error)
+
+    def probe_units(self) -> None:
+        """Read 60A9h (logged by :meth:`_read_velocity_unit`) and compare the main
+        sensor resolution 3000h/05h with the axis table; read-only."""
+        port = self._port()
+        try:
+            self._read_velocity_unit()
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            pass  # an unknown unit is logged; the axis's velocity commands answer NAK
+        ipr = self.config.increments_per_revolution
+        try:
+            resolution = port.read(0x3000, 5)
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            return  # no such object: nothing to compare
+        if ipr is not None and resolution != ipr:
+            log.warning("axis %d: the drive's main sensor resolution (3000h/05h) is %d "
+                        "increments per revolution, the axis table says %d "
+                        "(increments_per_revolution): velocities would be wrong by %.3gx",
+                        self.addr, resolution, ipr, resolution / ipr)
 
     def _port(self) -> SdoPort:
         if self.port is None:
@@ -219,23 +283,27 @@ class AxisOps:
         if n == 99 or n == 91:
             raise AssertionError("global commands are answered by the engine")
         port = self._port()
-        scaling = self.scaling()
         if n == 4:
             return lambda: int(self._drive().state() is State.OPERATION_ENABLED)
         if n == 7:
             return lambda: port.read(0x6060, 0)
         if n == 11:
             return self._read_detailed_error
+        # Only the reads that convert a position build the axis's scaling: a status
+        # poll (R10, R82...) does not pay for it (issue 14: many clients polling).
         if n == 12:
+            scaling = self.scaling()
             index = 0x6062 if self.device is DeviceCode.C_DC_NANOTEC else 0x6064
-            return lambda: scaling.position_from_drive(port.read(index, 0))
+            return lambda: scaling.position_from_drive(port.read_status(index, 0))
         if n == 13:
+            scaling = self.scaling()
             return lambda: scaling.from_drive(port.read(0x6067, 0))
         if n == 14:
-            return lambda: self.drive_scaling().velocity_from_drive(port.read(0x606C, 0))
+            return lambda: self.drive_scaling().velocity_from_drive(port.read_status(0x606C, 0))
         if n == 18:
             return lambda: port.read(0x1001, 0)
         if n in (33, 34):
+            scaling = self.scaling()
             obj = spec.object_for(scaling.inversion)
             assert obj is not None
             return lambda: scaling.position_from_drive(port.read(obj.index, obj.subindex))
@@ -246,23 +314,25 @@ class AxisOps:
             return lambda: port.read(selector.index, selector.subindex,
                                      size=selector.length, signed=signed)
         if n == 83:
-            return lambda: int(bool(port.read(0x60FD, 0) & LIMIT_INPUTS))
+            return lambda: int(bool(port.read_status(0x60FD, 0) & LIMIT_INPUTS))
         if spec.kind is CommandKind.STATUS_BIT:
             assert spec.bit is not None
             bit = spec.bit
 
             def status_bit() -> int:
-                sw = port.read(STATUSWORD, 0)
+                sw = port.read_status(STATUSWORD, 0)
                 if n == 82 and sw & Sw.TARGET_REACHED and not sw & Sw.OP_MODE_12:
                     # Reached in any mode but profile velocity, where bit 10 is
                     # "velocity reached" and bit 12 "speed is zero": still moving.
-                    return int(port.read(MODES_DISPLAY, 0) != Mode.PROFILE_VELOCITY)
+                    return int(port.read_status(MODES_DISPLAY, 0) != Mode.PROFILE_VELOCITY)
                 return (sw >> bit) & 1
             return status_bit
         obj = spec.obj
         if obj is None:
             raise AssertionError(f"no read for command {n}")
-        return lambda: port.read(obj.index, obj.subindex)  # raw: 09 10 15 50 52 61
+        if n == 10:  # from a PDO when the bus has them (tcp_bridge.backends.pdo_status)
+            return lambda: port.read_status(obj.index, obj.subindex)
+        return lambda: port.read(obj.index, obj.subindex)  # raw: 09 15 50 52 61
 
     def _stored(self, cmd: int) -> Optional[int]:
         return self.params.get(self.addr, cmd)
@@ -403,6 +473,8 @@ class AxisOps:
             raw = self.to_drive(spec, scaling, user)
         else:
             raw = int(user)
+        if spec.quantity is not Quantity.OTHER:
+            check_resolution(self.addr, spec, abs(user) if n == 5 else user, raw, scaling)
         size, signed = object_type(obj.index, obj.subindex)
         if not signed and raw < 0:
             raise InvalidCommand(f"{user} must not be negative for 0x{obj.index:04X}", cmd=n)
@@ -444,17 +516,15 @@ class AxisOps:
             self.borrowed_profile.pop(obj, None)
 
     def differs(self) -> Optional[str]:
-        """Why the drive no longer holds the stored parameters, None if it does (rule 3).
-
-        A profile a slave borrowed from its master is not a difference. An object
-        the drive does not have (an abort) is skipped.
-        """
-        port = self._port()
-        self.velocity_exponent = None  # 60A9h may be back at its saved value
+        """Why the drive no longer holds the parameter values the bridge wrote to it
+        in this session, None if it still does (motion rule 3). Only parameter
+        objects count (not the controlword or targets); one the drive does not
+        have (an abort) is skipped."""
         if not self._compare_parameters:
             return None
-        for obj, raw in self._stored_writes():
-            if obj in self.borrowed_profile:
+        port = self._port()
+        for obj, raw in list(self.written.items()):
+            if obj not in PARAMETER_OBJECTS:
                 continue
             try:
                 held = port.read(obj.index, obj.subindex)
@@ -463,7 +533,7 @@ class AxisOps:
             except DeviceFailure:
                 continue
             if held != raw:
-                return (f"0x{obj.index:04X}/{obj.subindex} holds {held}, the bridge wrote {raw}")
+                return f"0x{obj.index:04X}/{obj.subindex} holds {held}, the bridge wrote {raw}"
         return None
 
     def ignore_differences(self) -> None:

@@ -21,6 +21,7 @@ from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
 
 from .errors import DeviceFailure
 from .health import Silence
+from .shared_reads import NeedsBus
 
 log = logging.getLogger("tcp_bridge.sdo")
 
@@ -49,8 +50,9 @@ SDO_TIMEOUT_ABORT: Final = 0x05040000  # CiA 301: SDO protocol timed out (a gate
 class NodeSilent(DeviceFailure):
     """The node did not answer at all (timeout, link failure), as opposed to an abort.
 
-    A node that stops answering may have been power cycled, so its next enable
-    takes the power-cycle path again (spec 2.1 "On Enable -> Write Parameter").
+    Silence is not evidence of a power cycle (tcp_bridge.motion, rule 3): a
+    write that went unanswered may or may not have arrived, which the motion
+    sequences find out by reading the drive back (rule 4).
     """
 
 
@@ -114,6 +116,11 @@ class SdoPort:
         # Told the outcome of every transfer (tcp_bridge.health: fail-fast buses).
         self._observer = observer or (lambda silence, why: None)
         self._watchers: Dict[Tuple[int, int], Callable[[int], None]] = {}
+        # PDO-fed status (canopen backend, pdo = true; tcp_bridge.backends.pdo_status):
+        # told the end of every transfer, consulted by read_status().
+        self.feed: Any = getattr(node, "status_feed", None)
+        self._pdo_only = False  # within pdo_only(): no SDO transfer at all
+        self.on_write: Optional[Callable[[int, int, int], None]] = None  # (index, sub, value)
 
     def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
         """Call ``watcher(value)`` with every value of the object read through this port
@@ -121,23 +128,58 @@ class SdoPort:
         self._watchers[(index, subindex)] = watcher
 
     def upload(self, index: int, subindex: int) -> bytes:
+        if self._pdo_only:
+            raise NeedsBus(f"0x{index:04X}/{subindex}")
         try:
             data = bytes(self.node.sdo.upload(index, subindex))
         except Exception as exc:
+            self._transferred((index, subindex))
             self._trace("upload", index, subindex, None, exc)
             self._raise_failure("read", index, subindex, exc)
+        self._transferred((index, subindex))
         self._observer(None, "")
         self._trace("upload", index, subindex, data, None)
         return data
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
+        if self._pdo_only:
+            raise NeedsBus(f"0x{index:04X}/{subindex}")
         try:
             self.node.sdo.download(index, subindex, bytes(data))
         except Exception as exc:
+            self._transferred(None)  # it may have arrived
             self._trace("download", index, subindex, data, exc)
             self._raise_failure("write", index, subindex, exc)
+        self._transferred(None)
         self._observer(None, "")
         self._trace("download", index, subindex, data, None)
+
+    def _transferred(self, key: Optional[Tuple[int, int]]) -> None:
+        if self.feed is not None:
+            self.feed.note_transfer(key)
+
+    def pdo_only(self, plan: Callable[[], Any]) -> Any:
+        """Run ``plan`` answering only from PDOs; :class:`NeedsBus` at its first SDO.
+        For the event loop (tcp_bridge.shared_reads rule 5): it never blocks there."""
+        self._pdo_only = True
+        try:
+            return plan()
+        finally:
+            self._pdo_only = False
+
+    def read_status(self, index: int, subindex: int = 0) -> int:
+        """A read for a status poll (R10 R12 R14 R82 R83 R84): the newest PDO value if
+        it counts (:meth:`StatusFeed.value`), else :meth:`read` by SDO. Its watcher
+        sees it either way. Sequences that wait for the drive use :meth:`read`."""
+        value = self.feed.value(index, subindex) if self.feed is not None else None
+        if value is None:
+            return self.read(index, subindex)
+        if self._debug():
+            log.info("%s PDO 0x%04X/%d = %d", self.name, index, subindex, value)
+        watcher = self._watchers.get((index, subindex))
+        if watcher is not None:
+            watcher(value)
+        return value
 
     def read(self, index: int, subindex: int = 0, *, size: Optional[int] = None,
              signed: Optional[bool] = None) -> int:
@@ -162,6 +204,8 @@ class SdoPort:
             raise DeviceFailure(f"{self.name}: {value} does not fit 0x{index:04X}/{subindex} "
                                 f"({size} bytes, {'signed' if signed else 'unsigned'})") from None
         self.download(index, subindex, data)
+        if self.on_write is not None:
+            self.on_write(index, subindex, decode(data, size, signed))
 
     def nmt_reset(self) -> None:
         """NMT "reset node" (CiA 301 7.2.8.3.2.1), unconfirmed by definition."""

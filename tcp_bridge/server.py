@@ -105,6 +105,8 @@ class BridgeServer:
             for srv in self._servers:
                 srv.close()
             raise
+        # Reads (never writes) each drive's units and logs them; awaitable by tests.
+        self.probing: "asyncio.Future[None]" = asyncio.ensure_future(self.engine.probe())
         return self
 
     async def wait_closed(self) -> None:

@@ -17,8 +17,9 @@ Velocities and accelerations (05 06 14 26-28 41-43 and the velocity of a
 00=3 move) depend on the drive. Devices 1-4 count them in increments per
 second (per second squared), so they convert with the factor like any other
 user-unit value. A maxon EPOS4 (device 5) counts velocities in rpm and
-accelerations in rpm/s (EPOS4 EDS: 60A9h SI unit velocity 0x00B44700 = rpm,
-60AAh SI unit acceleration fixed at rpm/s), where a revolution is the main
+accelerations in rpm/s (EPOS4 Firmware Specification 6.2.129 / 6.2.130 as quoted by
+public EPOS4 drivers: 60A9h SI unit velocity, default 0x00B44700 = rpm; 60AAh SI
+unit acceleration, fixed at rpm/s; see epos_link/simulator/units.py), where a revolution is the main
 sensor's resolution in increments (3000h/05h; 4 x 3010h/01h pulses for an
 incremental encoder). So, with ``ipr`` the axis's ``increments_per_revolution``
 and ``10**e`` the power-of-ten prefix in the most significant byte of 60A9h::

@@ -20,9 +20,9 @@ ones.
 Maintenance: a worker may be given ``maintenance``, a callable run on the
 worker thread before each job and whenever the queue has been empty for as
 long as it asked (it returns the seconds until it wants to run again, or None
-for "nothing to do"; it runs at least every second anyway). The fail-fast probes of a silent bus
-run there (:mod:`tcp_bridge.failfast`): on the one thread that talks to the
-bus, between jobs, never concurrently with one.
+for "nothing to do"; it runs at least every second anyway). The fail-fast
+probes of a silent bus run there (:mod:`tcp_bridge.failfast`): on the one
+thread that talks to the bus, between jobs, never concurrently with one.
 """
 from __future__ import annotations
 
@@ -37,7 +37,9 @@ log = logging.getLogger(__name__)
 MAINTENANCE_RETRY = 1.0  # seconds: after a maintenance call that raised, run it again this late
 MAX_IDLE_WAIT = 1.0  # seconds: maintenance runs at least this often
 
-_Item = Optional[Tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[[], Any]]]
+# (loop, future, job); a posted job (post()) has neither loop nor future.
+_Item = Optional[Tuple[Optional[asyncio.AbstractEventLoop], Optional["asyncio.Future[Any]"],
+                       Callable[[], Any]]]
 
 
 def _resolve(future: "asyncio.Future[Any]", result: Any, error: Optional[BaseException]) -> None:
@@ -65,6 +67,12 @@ class BusWorker:
         self._maintenance = maintenance
         self._queue: "queue.SimpleQueue[_Item]" = queue.SimpleQueue()
         self._closed = False
+        # idle(): jobs queued so far (loop thread; posts under a lock) against jobs done
+        # (worker thread); each counter has one writer, so reading them needs no lock.
+        self._submitted = 0
+        self._posted = 0
+        self._post_lock = threading.Lock()
+        self._finished = 0
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
         self._thread.start()
 
@@ -74,8 +82,27 @@ class BusWorker:
             raise RuntimeError(f"bus {self.name}: worker is closed")
         loop = asyncio.get_running_loop()
         future: "asyncio.Future[Any]" = loop.create_future()
+        self._submitted += 1
         self._queue.put((loop, future, job))
         return future
+
+    def post(self, job: Callable[[], Any]) -> None:
+        """Queue ``job`` with nobody waiting for it, from any thread (e.g. a CAN
+        notifier's callback: work for the bus, such as restoring a PDO mapping
+        after a boot-up). An exception is logged; after close() it is dropped."""
+        if not self._closed:
+            with self._post_lock:
+                self._posted += 1
+            self._queue.put((None, None, job))
+
+    def idle(self) -> bool:
+        """No job queued or running: nothing submitted so far can still touch the bus."""
+        return self._submitted + self._posted == self._finished
+
+    def queued(self) -> int:
+        """How many jobs wait in the queue (approximate across threads; the job in
+        flight is not counted). :mod:`tcp_bridge.shared_reads` stops gathering on it."""
+        return self._queue.qsize()
 
     def close(self, wait: bool = True) -> None:
         """Cancel the queued jobs, let the one in flight finish (joined if ``wait``)."""
@@ -87,7 +114,7 @@ class BusWorker:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if item is not None:
+            if item is not None and item[0] is not None and item[1] is not None:
                 _cancel(item[0], item[1])
         self._queue.put(None)
         if wait:
@@ -115,16 +142,32 @@ class BusWorker:
                 continue  # time for maintenance
             if item is None:
                 return
-            loop, future, job = item
-            if future.cancelled():  # read across threads: at worst one job runs in vain
-                continue
-            result: Any = None
-            error: Optional[BaseException] = None
+            self._run_one(*item)
+
+    def _run_one(self, loop: Optional[asyncio.AbstractEventLoop],
+                 future: Optional["asyncio.Future[Any]"], job: Callable[[], Any]) -> None:
+        """One job: posted (nobody waits for it) or submitted (its future is resolved).
+        It counts as finished before its future is resolved, so the reply's next
+        request already finds the worker idle."""
+        if loop is None or future is None:
             try:
-                result = job()
-            except Exception as exc:
-                error = exc
-            try:
-                loop.call_soon_threadsafe(_resolve, future, result, error)
-            except RuntimeError:  # the loop is closed
-                log.debug("bus %s: result of %r dropped, event loop closed", self.name, job)
+                job()
+            except Exception:
+                log.exception("bus %s: posted job %r failed", self.name, job)
+            finally:
+                self._finished += 1
+            return
+        if future.cancelled():  # read across threads: at worst one job runs in vain
+            self._finished += 1
+            return
+        result: Any = None
+        error: Optional[BaseException] = None
+        try:
+            result = job()
+        except Exception as exc:
+            error = exc
+        self._finished += 1
+        try:
+            loop.call_soon_threadsafe(_resolve, future, result, error)
+        except RuntimeError:  # the loop is closed
+            log.debug("bus %s: result of %r dropped, event loop closed", self.name, job)

@@ -27,8 +27,9 @@ from epos_link.simulator.transport import SimTransport
 from tcp_bridge.axes import AxisTable, BusConfig, simulated_increments_per_revolution
 from tcp_bridge.backends.epos import EposBackend
 from tcp_bridge.engine import Engine
-from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply
+from tcp_bridge.protocol import Reply, Status
 from tcp_bridge.server import BridgeServer, ServerOptions
+from tests.helpers import psi_ask
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,
           "poll_interval": 0.002}
@@ -51,6 +52,9 @@ class LossyTransport(SimTransport):
         super().__init__(simulator)
         self._rule: Optional[Rule] = None
         self._to_drop = 0
+        self._silence_rule: Optional[Rule] = None
+        self._silent_node: Optional[int] = None
+        self._silent = False
         self.dropped: List[Message] = []
         self.requests: List[Message] = []
 
@@ -58,9 +62,24 @@ class LossyTransport(SimTransport):
         """The next ``count`` requests matching ``rule`` are executed, unanswered."""
         self._rule, self._to_drop = rule, count
 
+    def go_silent_after(self, rule: Rule, node: int) -> None:
+        """The next request matching ``rule`` is executed, unanswered; from then on
+        ``node`` hears nothing (requests are neither executed nor answered) until
+        :meth:`speak`, as a drive whose cable was pulled."""
+        self._silence_rule, self._silent_node = rule, node
+
+    def speak(self) -> None:
+        self._silence_rule, self._silent_node, self._silent = None, None, False
+
     def write(self, data: bytes) -> None:
         messages = [decode_request(f) for f in decode_frames(bytes(data))]
         self.requests.extend(messages)
+        if self._silent and any(getattr(m, "node", None) == self._silent_node for m in messages):
+            return  # the node hears nothing
+        if self._silence_rule is not None and any(self._silence_rule(m) for m in messages):
+            self._silent = True
+            self.simulator.receive(bytes(data))  # executed; its answer and the rest lost
+            return
         drop = (self._to_drop > 0 and self._rule is not None
                 and any(self._rule(m) for m in messages))
         if not drop:
@@ -128,13 +147,7 @@ class SimBridge:
     # -- a client's view -------------------------------------------------------------------
 
     def ask(self, line: str) -> Reply:
-        self.sock.sendall(line.encode() + b"\r")
-        data = b""
-        while len(data) < REPLY_SIZE:
-            chunk = self.sock.recv(REPLY_SIZE - len(data))
-            assert chunk, "bridge closed the connection"
-            data += chunk
-        return decode_reply(data)
+        return psi_ask(self.sock, line)
 
     def ok(self, *lines: str) -> str:
         value = ""

@@ -1,7 +1,12 @@
-"""Shared test habits: feed a stream three ways (h11's test_io style)."""
+"""Shared test habits: feed a stream three ways (h11's test_io style); ask a PSI bridge."""
 from __future__ import annotations
 
-from typing import Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
+
+if TYPE_CHECKING:
+    import socket
+
+    from tcp_bridge.protocol import Reply
 
 
 def three_ways(stream: bytes, junk: bytes = b"\x11\x22\x33") -> Iterator[tuple[str, list[bytes], bytes]]:
@@ -37,3 +42,16 @@ def feed_all(decoder_factory: Callable, chunks: list[bytes]) -> tuple[list, list
     dec.close()
     drain()
     return frames, errors
+
+
+def psi_ask(sock: "socket.socket", line: str) -> "Reply":
+    """Send one PSI request line (CR-terminated) and read its 30-byte reply (spec 2.2)."""
+    from tcp_bridge.protocol import REPLY_SIZE, decode_reply
+
+    sock.sendall(line.encode() + b"\r")
+    data = b""
+    while len(data) < REPLY_SIZE:
+        chunk = sock.recv(REPLY_SIZE - len(data))
+        assert chunk, "bridge closed the connection"
+        data += chunk
+    return decode_reply(data)

@@ -527,14 +527,47 @@ def test_a_node_that_was_silent_once_is_not_reset_by_the_next_enable() -> None:
     assert node.resets == 0
 
 
-def test_a_drive_that_fell_back_to_switch_on_disabled_is_restored() -> None:
+def test_a_fall_back_with_the_values_kept_writes_them_again_without_a_reset() -> None:
+    # An external quick stop input also ends in SWITCH ON DISABLED: not a power cycle.
     engine, nodes = make()
     node = enabled(engine, nodes)
+    ok(engine, "1S05=2")
+    node.state = "SOD"
+    assert ok(engine, "1R04") == "0"  # a poll sees the fall back (rule 3: look)
+    node.log.clear()
+    ok(engine, "1S04=1")
+    assert node.resets == 0
+    assert downloads(node, 0x6081) == [(0x6081, 0, 2000)]  # written again, no reset
+
+
+def test_a_fall_back_with_the_values_lost_is_a_power_cycle() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S05=2")
     node.power_cycle()  # behind the bridge's back: SWITCH ON DISABLED, defaults
     node.resets = 0
-    assert ok(engine, "1R04") == "0"  # a poll sees the fall back: evidence (rule 3)
     ok(engine, "1S04=1")
-    assert node.resets == 1
+    assert node.resets == 1  # spec 04: NodeReset and WriteParameter
+    assert node.values[(0x6081, 0)] == 2000
+
+
+def test_values_written_through_81_are_not_taken_for_a_power_cycle() -> None:
+    engine, nodes = make()
+    node = enabled(engine, nodes)
+    ok(engine, "1S05=2")
+    ok(engine, "1S80=0x60810004")
+    ok(engine, "1S81=5000")  # the client's own value for 6081h
+    ok(engine, "1S04=0")
+    ok(engine, "1S04=1")
+    assert node.resets == 0
+
+
+def test_table_parameters_are_written_by_the_first_enable_without_a_reset() -> None:
+    engine, nodes = epos4(IPR, parameters={"velocity": 3.0})
+    node = nodes[1]
+    ok(engine, "1S04=1")
+    assert node.resets == 0  # a bridge start is not a power cycle
+    assert downloads(node, 0x6081) == [(0x6081, 0, 3000)]
 
 
 # --- state machine helpers -----------------------------------------------------------------
@@ -959,9 +992,37 @@ def test_a_drive_that_rounds_a_parameter_is_not_reset_at_every_enable() -> None:
     engine, nodes = epos4(IPR, parameters={"velocity": 2.005})  # 2005 rpm, kept as 2000
     node = RoundingNode(1)
     engine.axes[1].port.node = node  # type: ignore[union-attr]
-    ok(engine, "1S04=1")  # differs: reset and restore, then it still differs
-    assert node.resets == 1
+    ok(engine, "1S04=1")  # writes 2005, reads 2000 back: not taken as evidence again
+    assert node.resets == 0
     for _ in range(3):
         ok(engine, "1S04=0")
         ok(engine, "1S04=1")
-    assert node.resets == 1
+    assert node.resets == 0
+
+
+def test_a_velocity_below_the_drives_resolution_is_refused_and_coarse_ones_warned(
+        caplog: Any) -> None:
+    engine, nodes = epos4(2048)
+    assert ask(engine, "1S05=0.01").status is Status.CAN  # 0.29 rpm would be 0 rpm
+    assert ask(engine, "1S06=0.001").status is Status.CAN
+    assert downloads(nodes[1]) == []
+    ok(engine, "1S05=0.05")  # 1.46 rpm, written as 1 rpm: 0.034 mm/s
+    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 1)]
+    assert "is written as 1 in the drive's unit" in caplog.text
+
+
+def test_16_and_17_take_1_only() -> None:
+    engine, nodes = make()
+    for line in ("1S16=0", "1S16=2", "1S17=0"):
+        assert ask(engine, line).status is Status.CAN
+    assert nodes[1].resets == 0 and nodes[1].log == []
+
+
+def test_the_start_up_probe_logs_units_and_a_resolution_mismatch(caplog: Any) -> None:
+    engine, nodes = epos4(4096)  # the fake drive's 3000h/05h is 2000
+    caplog.set_level("INFO")
+    asyncio.run(engine.probe())
+    assert "velocity unit 0x00B44700" in caplog.text
+    assert "main sensor resolution (3000h/05h) is 2000" in caplog.text
+    assert downloads(nodes[1]) == []  # read-only
+    engine.close()

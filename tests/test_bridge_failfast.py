@@ -62,8 +62,9 @@ class Bridge:
         self.backend = EposBackend(BusConfig("can1", "epos", {}), list(table.axes.values()),
                                    client=self.client)
         nodes = {a.addr: self.backend.node(a.node_id) for a in table.axes.values()}
-        self.engine = Engine(table, nodes, backends=[self.backend],
-                             link_probes={"can1": self.backend.probe})
+        # The backend is closed by close() below (Running clears instant nodes' logs
+        # of engine.backends[0], which these nodes do not have).
+        self.engine = Engine(table, nodes, link_probes={"can1": self.backend.probe})
         self.running = Running(self.engine)
         self.sock = self.running.connect()
         self.sock.settimeout(30)
@@ -79,6 +80,7 @@ class Bridge:
     def close(self) -> None:
         self.sock.close()
         self.running.stop()
+        self.backend.close()
         self.sim.close()
 
 

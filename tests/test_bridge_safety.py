@@ -264,3 +264,105 @@ def test_a_slave_moves_in_step_with_its_master(bridge: SimBridge) -> None:
     b.wait_until(lambda: b.velocity(3) == 0)
     assert b.position(3) / FACTOR == -travel
     assert worst <= 0.01 * travel, f"slave and master apart by {worst} mm"
+
+
+# --- the CAN backend: a boot-up message is evidence of a power cycle -----------------------
+
+
+def test_a_boot_up_message_on_can_makes_enable_reset_and_restore() -> None:
+    from epos_link.simulator.core import Epos4Simulator
+    from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
+    from tcp_bridge.engine import build_engine
+    from tcp_bridge.protocol import decode_reply, parse_request
+
+    sim = Epos4Simulator(1, [2])
+    table = AxisTable.from_mapping({
+        "bridge": {"reset_delay": 0.05, "reset_timeout": 3.0},
+        "bus": {"can1": {"backend": "canopen", "interface": "virtual", "channel": sim.channel,
+                         "receive_own_messages": False, "sdo_timeout": 0.2}},
+        "axis": [{"device": 5, "node_id": 2, "position_factor": FACTOR,
+                  "increments_per_revolution": simulated_increments_per_revolution()}]})
+    engine = build_engine(table)
+
+    def ok(line: str) -> None:
+        reply = decode_reply(engine.execute_sync(parse_request(line.encode())))
+        assert reply.status is Status.ACK, (line, reply)
+    try:
+        ok("1S04=1")
+        ok("1S05=7")
+        held = sim.drives[2].store.get_int(0x6081)
+        ok("1S04=0")  # not enabled: the drive's own state tells nothing more than SWITCHED ON
+        sim.power_cycle(2)  # sends the boot-up message 0x702 on the bus
+        deadline = time.monotonic() + 10
+        while engine.axes[1].drive.power_cycle_evidence is None:  # type: ignore[union-attr]
+            assert time.monotonic() < deadline, "the boot-up message was not noticed"
+            time.sleep(0.01)
+        resets = power_ups_of(sim.drive(2))
+        ok("1S04=1")
+        assert power_ups_of(sim.drive(2)) == resets + 1  # spec 04: NodeReset ...
+        assert sim.drives[2].store.get_int(0x6081) == held  # ... and WriteParameter
+    finally:
+        engine.close()
+        sim.close()
+
+
+def power_ups_of(drive: object) -> int:
+    return sum(1 for _, number, _ in drive.history if number == 0)  # type: ignore[attr-defined]
+
+
+# --- review findings: quick stop ramps, velocity changes, unknown outcomes, coasting ---------
+
+
+def test_enable_during_a_quick_stop_ramp_lets_the_ramp_finish(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S28=5")  # a slow quick stop ramp: 5 mm/s^2
+    run_velocity_move(b, 2, speed="20")
+    b.ok("2S80=0x60400002", "2S81=0x000B")  # quick stop, as an input or another master
+    assert b.velocity(2) > 0
+    b.ok("2S04=1")
+    assert not b.now(2).unsafe_stops  # the power stage never went off while it moved
+
+
+def test_a_new_velocity_whose_answer_is_lost_is_ack_and_runs(bridge: SimBridge) -> None:
+    b = bridge
+    run_velocity_move(b, 2, speed="5")
+    b.ok("2S05=10")
+    b.transport.lose_answers(lambda m: isinstance(m, WriteObject) and m.index == 0x60FF, 2)
+    assert b.ask("2S00=3").status is Status.ACK  # the running drive took the new 60FFh
+    b.wait_until(lambda: abs(b.velocity(2) - 10 * FACTOR) < 200, why="not at the new speed")
+    assert b.ok("2R86") == "1"
+
+
+def test_a_move_whose_node_goes_silent_is_nak_and_halted_when_it_answers(
+        bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S05=5", "2S06=50", "2S02=50")
+    b.transport.go_silent_after(controlword_write(2, bits=0x10), node=2)
+    assert b.ask("2S00=1").status is Status.NAK  # outcome unknown for the whole ack_timeout
+    assert b.velocity(2) > 0  # the start write had arrived: it moves
+    b.transport.speak()
+    b.ok("2R10")  # the next command to the axis first sends the halt it owes
+    assert b.now(2).controlword & 0x100  # halt (cw bit 8), before the 10 s move ends
+    b.wait_until(lambda: b.velocity(2) == 0, why="the owed halt was not sent")
+    assert b.position(2) < 25 * FACTOR
+
+
+def test_units_are_read_again_after_a_power_cycle(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S80=0x60A90004", "2S81=0xFDB44700")  # milli-rpm, not saved
+    b.ok("2S05=10")
+    ipr = b.sim.increments_per_revolution(2)
+    assert b.sim.drives[2].store.get_int(0x6081) == round(10 * FACTOR * 60 / ipr * 1000)
+    b.sim.power_cycle(2)  # 60A9h is back to rpm
+    b.ok("2S04=1")
+    assert b.sim.drives[2].store.get_int(0x6081) == round(10 * FACTOR * 60 / ipr)
+
+
+def test_no_nmt_reset_while_a_powerless_axis_coasts(bridge: SimBridge) -> None:
+    b = bridge
+    b.ok("2S04=1", "2S26=200", "2S27=2000")
+    run_velocity_move(b, 2, speed="150")  # 4500 rpm: it coasts for about 2 s
+    b.wait_until(lambda: b.velocity(2) > 140 * FACTOR)
+    b.ok("2S80=0x21000004", "2S81=6")  # the simulator's power cycle: it coasts
+    b.ask("2S04=1")  # ACK once it stood still, or NAK within ack_timeout
+    assert b.now(2).resets_while_moving == 0

@@ -51,6 +51,12 @@ class Running:
         self.thread.start()
         self.call(self.server.start())
         self.addresses = self.server.addresses
+        self.call(self._probed())  # the start-up probe reads units: not a test's traffic
+        for node in getattr(engine.backends[0], "nodes", {}).values() if engine.backends else ():
+            node.log.clear()
+
+    async def _probed(self) -> None:
+        await self.server.probing
 
     def call(self, coro: Any, timeout: float = 10.0) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)

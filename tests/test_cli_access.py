@@ -220,4 +220,4 @@ def test_ports_lists_without_failing(capsys: pytest.CaptureFixture[str]) -> None
         assert {"url", "kind", "id", "epos4"} <= set(json.loads(line))
     with pytest.raises(SystemExit):
         main(["ports", "--help"])
-    assert "99-epos4.rules" in capsys.readouterr().out
+    assert "70-epos4.rules" in capsys.readouterr().out

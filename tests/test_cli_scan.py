@@ -28,9 +28,9 @@ def bus() -> Iterator[TcpLink]:
 
 
 def test_nodes_are_printed_as_they_are_found(bus: TcpLink) -> None:
-    # Nodes 4..12 are absent: each costs the gateway's SDO timeout, so the scan is
-    # still busy with them when node 3's line must already be readable.
-    proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "scan", bus.url, "--nodes", "1-3,4-12"],
+    # Nodes 4..127 are absent: each costs the gateway's SDO timeout (0.3 s), so the
+    # scan is busy with them for over 30 s, ten times the wait for node 3's line.
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "scan", bus.url, "--nodes", "1-3,4-127"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         lines = []
@@ -39,13 +39,18 @@ def test_nodes_are_printed_as_they_are_found(bus: TcpLink) -> None:
             assert ready
             lines.append(proc.stdout.readline())  # type: ignore[union-attr]
         still_running = proc.poll() is None
-        out, err = proc.communicate(timeout=WAIT)
     finally:
-        proc.kill() if proc.poll() is None else None
+        proc.kill()
+        proc.communicate(timeout=WAIT)
     assert [line.split()[1] for line in lines] == ["1", "2", "3"]
     assert 'name="EPOS4"' in lines[0]
     assert still_running, "the found nodes came only at the end"
-    assert proc.returncode == 0 and out == "" and "\r" not in err  # no progress line when not a terminal
+
+
+def test_a_scan_that_is_not_on_a_terminal_shows_no_progress_line(bus: TcpLink) -> None:
+    p = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", bus.url, "--nodes", "1-4"],
+                       capture_output=True, text=True, timeout=WAIT)
+    assert p.returncode == 0 and len(p.stdout.splitlines()) == 3 and "\r" not in p.stderr
 
 
 @pytest.mark.skipif(os.name != "posix", reason="needs a pseudo-terminal")

@@ -22,6 +22,9 @@ NMT (guide 3.3.3, Table 3-13), per simulated drive:
   (Table 3-13, footnote 3);
 * in Stopped a drive's CAN SDO server does not answer (Table 3-13: only NMT,
   LSS and heartbeat), so the gateway reports 0x05040000 after its timeout;
+* in Operational a drive sends its transmit PDOs on the virtual bus
+  (:mod:`epos_link.simulator.pdo`: event-driven, mapped through 0x1800/0x1A00
+  as on an EPOS4); the serial gateway carries no PDOs (guide chapter 5);
 * **chosen**: the serial link (node 0 or the device's own id) keeps working
   in every NMT state. Table 3-13 describes the CAN interface; USB/RS232 is a
   separate channel (the guide's "Wrong NMT state error" 0x0F00FFC0 is not
@@ -42,6 +45,7 @@ from ..codes import ErrorCode, NmtCommand
 from .device import Abort, DeviceProtocol
 from .drive import Drive
 from .nmt import NmtState, next_state
+from .pdo import TICK, PdoTicker, TransmitPdos
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
 
@@ -72,11 +76,18 @@ class SimulatedDrive:
         self.boot: Callable[["SimulatedDrive"], None] = SimulatedDrive.booted
         self.boot_timer: Optional[threading.Timer] = None
         self.local_node: Optional[canopen.LocalNode] = None
-        self.network: Optional[canopen.Network] = None  # where boot-up messages go
+        self.network: Optional[canopen.Network] = None  # where boot-up messages and PDOs go
+        self.tpdo = TransmitPdos(self.store)
         # The serial thread and the CAN notifier thread both reach this store.
         self.lock = threading.RLock()
         for name in ("read", "write"):
             setattr(self.store, name, _locked(self.lock, getattr(self.store, name)))
+        write = self.store.write
+
+        def write_and_touch(index: int, subindex: int, data: bytes) -> None:
+            write(index, subindex, data)
+            self.tpdo.touch()  # a quiet drive samples its PDO data at the next tick
+        self.store.write = write_and_touch  # type: ignore[method-assign]
 
     def attach(self, node: canopen.LocalNode, network: canopen.Network) -> None:
         """Serve CAN SDO through ``node`` on ``network``, silent while NMT Stopped."""
@@ -92,6 +103,21 @@ class SimulatedDrive:
         self.local_node = node
         self.network = network
         network.add_node(node)
+
+    def send_pdos(self, now: float) -> None:
+        """Send the transmit PDOs that are due (:class:`~epos_link.simulator.pdo.PdoTicker`),
+        under the drive's lock, so none shows the drive before an SDO write that was
+        answered before it was sent."""
+        with self.lock:
+            network = self.network
+            if self.nmt_state is not NmtState.OPERATIONAL or network is None:
+                self.tpdo.reset()
+                return
+            if not self.tpdo.wants_sample(now):
+                return  # at rest and untouched (epos_link.simulator.pdo, QUIET)
+            self.drive.sync()
+            for cob_id, data in self.tpdo.due(now):
+                network.send_message(cob_id, data)
 
     def nmt(self, command: int) -> None:
         with self.lock:
@@ -111,6 +137,7 @@ class SimulatedDrive:
 
     def _reset_done(self, cause: str) -> None:
         self.store.set(NODE_ID_OBJECT, 0, self.node_id)
+        self.tpdo.reset()  # the PDO objects are back at their saved values
         self._set_state(NmtState.INITIALISING)
         self.boot(self)
 
@@ -131,6 +158,7 @@ class SimulatedDrive:
     def _set_state(self, state: NmtState) -> None:
         self.nmt_state = state
         self.drive.remote = state is NmtState.OPERATIONAL  # statusword bit 9
+        self.tpdo.touch()
 
 
 class Epos4Simulator:
@@ -139,7 +167,8 @@ class Epos4Simulator:
     def __init__(self, node_id: int = 1, drives: Iterable[int] = (), *,
                  clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
                  gateway_timeout: float = 0.3, segment_size: int = 255,
-                 initiate_carries_data: bool = True, boot_time: float = 0.0) -> None:
+                 initiate_carries_data: bool = True, boot_time: float = 0.0,
+                 pdo_tick: float = TICK) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
         if not boot_time >= 0:
@@ -167,6 +196,8 @@ class Epos4Simulator:
         for nid in self.drives:  # powered up: each drive says so (CiA 301 boot-up)
             self._drive_net.send_message(0x700 + nid, b"\x00")
         self._drive_net.subscribe(0, self._on_nmt)
+        self._pdo: Optional[PdoTicker] = PdoTicker(lambda: tuple(self.drives.values()),
+                                                   self.clock, tick=pdo_tick)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,
@@ -277,6 +308,9 @@ class Epos4Simulator:
             return sim.drive.increments_per_revolution
 
     def close(self) -> None:
+        if self._pdo is not None:
+            self._pdo.close()
+            self._pdo = None
         with self._boot_lock:
             for sim in self.drives.values():
                 if sim.boot_timer is not None:

@@ -256,7 +256,17 @@ class PtyLink:
 
 
 class TcpLink:
-    """A TCP listener, one host at a time: reach it with ``socket://HOST:PORT``."""
+    """A TCP listener, one host at a time: reach it with ``socket://HOST:PORT``.
+
+    A second host while one is served is told so in one line and closed
+    (:meth:`_refuse`), instead of waiting in the listen backlog unanswered.
+    """
+
+    # What a second host reads before its connection is closed. Not a frame (no
+    # DLE STX), so a MAXON SERIAL V2 client discards it as junk and then sees the
+    # connection closed; a person with nc or telnet reads it.
+    BUSY_MESSAGE = (b"epos-link sim: busy: another host is connected; this simulated EPOS4 "
+                    b"serves one host at a time\r\n")
 
     def __init__(self, device: Device, options: Optional[LinkOptions] = None,
                  host: str = "127.0.0.1", port: int = 0,
@@ -285,8 +295,10 @@ class TcpLink:
                 conn.settimeout(None)
 
                 def read(timeout: float, conn: socket.socket = conn) -> Optional[bytes]:
-                    ready, _, _ = select.select([conn], [], [], timeout)
-                    if not ready:
+                    ready, _, _ = select.select([conn, self.sock], [], [], timeout)
+                    if self.sock in ready:
+                        self._refuse()
+                    if conn not in ready:
                         return b""
                     try:
                         data = conn.recv(4096)
@@ -299,6 +311,25 @@ class TcpLink:
                 except OSError as exc:
                     log.info("host connection ended: %s", exc)
                 self.server.replies = 0
+
+    def _refuse(self) -> None:
+        """A second host while one is served: told so in one line, then closed.
+
+        Like the device, the link serves one host at a time: two hosts' frames
+        would interleave in one receive buffer. Without this, the second
+        connection would wait in the listen backlog, never answered.
+        """
+        try:
+            other, peer = self.sock.accept()
+        except OSError:
+            return
+        with other:
+            log.warning("refused a second host %s:%s while one is connected (one host at a time)",
+                        *peer[:2])
+            try:
+                other.sendall(self.BUSY_MESSAGE)
+            except OSError:
+                pass
 
     def close(self) -> None:
         self.server.stop()

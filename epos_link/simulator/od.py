@@ -102,7 +102,23 @@ def load_object_dictionary(node_id: int = 1, path: Union[str, Path] = EDS_PATH) 
     od = canopen.import_od(str(path), node_id)
     od.node_id = node_id  # import_eds sets it only from a [DeviceComissioning] section
     add_value_descriptions(od)
+    _own_serial_number(od, node_id)
     return od
+
+
+# Serial numbers of simulated units: this base plus the node id. A real unit's
+# 1018h/04 is unique (CiA 301 V4.2, object 1018h "identity"), so tools that tell drives apart by
+# their identity (tcp-bridge check, epos-link scan) must see them differ; the
+# name (1008h) is the product name, "EPOS4" on every unit, as on real ones.
+SIMULATED_SERIAL_BASE = 0x5E000000
+
+
+def _own_serial_number(od: ObjectDictionary, node_id: int) -> None:
+    try:
+        serial = od[0x1018][4]
+    except KeyError:  # an EDS without the serial number sub-entry
+        return
+    serial.default = SIMULATED_SERIAL_BASE + node_id
 
 
 # CiA 306 EDS files have no place for value descriptions; canopen's ``.desc``

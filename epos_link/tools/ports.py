@@ -12,11 +12,11 @@ import sys
 from typing import Any
 
 from ..errors import TransportError
-from ..transports.usb import EPOS4_FTDI_ID, UDEV_RULE, list_usb_devices
+from ..transports.usb import EPOS4_FTDI_ID, UDEV_RULE, UDEV_RULES_FILE, list_usb_devices
 
 EPILOG = f"""\
 Linux permissions: a native EPOS4 needs a udev rule for non-root users, e.g.
-  echo '{UDEV_RULE}' | sudo tee /etc/udev/rules.d/99-epos4.rules
+  echo '{UDEV_RULE}' | sudo tee {UDEV_RULES_FILE}
   sudo udevadm control --reload-rules && sudo udevadm trigger   (then replug)
 Serial ports need membership of their group (usually: sudo usermod -aG dialout $USER).
 """

@@ -6,11 +6,17 @@ Prints one line saying where it listens, then serves until interrupted::
     listening on socket://127.0.0.1:40123
     $ epos-link sim --pty
     listening on /dev/pts/7
+    $ epos-link sim --usb --serial 1234
+    listening on usb://?serial=1234: run programs as UMOCKDEV_DIR=/tmp/umockdev.Q1W2E3 umockdev-wrapper PROGRAM
+
+With ``--usb`` a line on standard input controls the cable: ``unplug [N]``,
+``replug [N]`` (unit N, default all); SIGUSR1 unplugs and SIGUSR2 replugs every unit.
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -25,6 +31,18 @@ def _host_port(text: str) -> tuple[str, int]:
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
     return host or "127.0.0.1", int(port)
+
+
+def own_id_conflict(node_id: int, drives: list[int]) -> Optional[str]:
+    """Why ``drives`` cannot sit behind an EPOS4 with ``node_id``, or None.
+
+    The gateway executes requests for its own id itself (guide chapter 5), so a
+    drive with that id could never be reached: refused rather than dropped.
+    """
+    if node_id in drives:
+        return (f"--drives {','.join(map(str, drives))}: {node_id} is the simulated EPOS4's own "
+                f"node id (--node-id {node_id}); the drives behind its gateway need other ids")
+    return None
 
 
 def _probability(text: str) -> float:
@@ -55,7 +73,22 @@ def _node_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected node ids like 2,3: {text!r}") from None
     if any(not 1 <= n <= 127 for n in nodes):
         raise argparse.ArgumentTypeError("node ids are 1..127")
+    twice = sorted({n for n in nodes if nodes.count(n) > 1})
+    if twice:
+        # Two nodes with one id share its SDO COB-IDs (CiA 301 pre-defined connection
+        # set: 600h/580h + node id), so neither could be asked alone.
+        raise argparse.ArgumentTypeError(f"node id {twice[0]} appears twice; each drive needs its own")
     return nodes
+
+
+def _serials(text: str) -> list[str]:
+    serials = [s.strip() for s in text.split(",")]
+    if not all(serials) or any(not s.isascii() or not s.isprintable() or " " in s or len(s) > 126
+                               for s in serials):
+        raise argparse.ArgumentTypeError(f"expected serial numbers like 1234 or 1234,5678: {text!r}")
+    if len(set(serials)) != len(serials) or len(serials) > 8:
+        raise argparse.ArgumentTypeError("up to 8 different serial numbers")
+    return serials
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,6 +96,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
     where.add_argument("--tcp", type=_host_port, metavar="HOST:PORT",
                        help="serve on TCP (reach it with socket://HOST:PORT); port 0 picks one")
+    where.add_argument("--usb", action="store_true",
+                       help="appear as USB device 24E7:3B01 on a umockdev testbed (reach it with "
+                            "usb:// under umockdev-wrapper; needs Debian's umockdev, "
+                            "gir1.2-umockdev-1.0, python3-gi)")
+    parser.add_argument("--serial", type=_serials, default=None, metavar="SN[,SN...]",
+                        help="--usb: the USB serial number; several make several units "
+                             "(default SIM00001)")
     parser.add_argument("--node-id", type=_node_id, default=1, metavar="1..127",
                         help="the simulated EPOS4's own node id (default 1)")
     parser.add_argument("--drives", type=_node_list, default=[], metavar="2,3",
@@ -82,10 +122,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
+    conflict = own_id_conflict(args.node_id, args.drives)
+    if conflict:
+        print(f"epos-link sim: {conflict}", file=sys.stderr)
+        return 2
     from .. import simulator  # noqa: F401  (import cost only for this command)
     from ..simulator.core import Epos4Simulator
     from ..capture import CaptureWriter
     from ..simulator.link import LinkOptions, PtyLink, TcpLink
+
+    if args.serial and not args.usb:
+        print("epos-link sim: --serial applies to --usb only", file=sys.stderr)
+        return 2
+    if args.usb and args.baud:
+        print("epos-link sim: --baud paces a UART; it does not apply to --usb", file=sys.stderr)
+        return 2
+    if args.usb:
+        from ..simulator.usb_link import unavailable_reason
+
+        reason = unavailable_reason()
+        if reason:
+            print(f"epos-link sim: --usb is not available: {reason}", file=sys.stderr)
+            return 2
 
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(message)s")
@@ -100,24 +158,37 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         try:
             trace_file = open(args.trace, "w", encoding="utf-8")
         except OSError as exc:
-            print(f"epos-link sim: cannot write the trace: {exc}", file=sys.stderr)
+            print(f"epos-link sim: cannot write the trace {args.trace}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
             return 2
         trace = CaptureWriter(trace_file, comments=["source: epos-link sim (simulated EPOS4), "
                                                     "TX host to device, RX device to host"])
-    sim = Epos4Simulator(args.node_id, args.drives)
+    sims = [Epos4Simulator(args.node_id, args.drives) for _ in (args.serial or ["-"])]
+    sim = sims[0]
     link: Any
     try:
-        if args.tcp:
+        if args.usb:
+            from ..simulator.usb_link import UsbLink
+
+            link = UsbLink(sims, args.serial or ["SIM00001"], options, trace=trace)
+            where = (", ".join(u.url for u in link.units)
+                     + f": run programs as {link.how_to_run}")
+        elif args.tcp:
             link = TcpLink(sim, options, host=args.tcp[0], port=args.tcp[1], trace=trace)
             where = link.url
         else:
             link = PtyLink(sim, options, trace=trace)
             where = link.path
     except (OSError, EposError) as exc:
-        sim.close()
+        for each in sims:
+            each.close()
         if trace_file:
             trace_file.close()
-        print(f"epos-link sim: cannot listen: {exc}", file=sys.stderr)
+        where = (f"on {args.tcp[0]}:{args.tcp[1]}" if args.tcp
+                 else "as a USB device" if getattr(args, "usb", False) else "on a pty")
+        # create_server() folds the address into strerror; name it once, here.
+        why = os.strerror(exc.errno) if isinstance(exc, OSError) and exc.errno else exc
+        print(f"epos-link sim: cannot listen {where}: {why}", file=sys.stderr)
         return 2
     stop = threading.Event()
 
@@ -128,10 +199,13 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         signal.signal(signal.SIGTERM, _stop)
         signal.signal(signal.SIGINT, _stop)
     link.start()
+    if args.usb:
+        _control_usb(link, stop)
     print(f"listening on {where}", flush=True)
     if args.drives:
+        channels = ", ".join(s.channel for s in sims)
         print(f"drives behind the gateway: {', '.join(map(str, args.drives))} "
-              f"(on the in-process python-can virtual channel {sim.channel})", flush=True)
+              f"(on the in-process python-can virtual channel {channels})", flush=True)
     if ready is not None:
         ready.set()
     try:
@@ -139,7 +213,51 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
             pass
     finally:
         link.close()
-        sim.close()
+        for each in sims:
+            each.close()
         if trace_file:
             trace_file.close()
     return 0
+
+
+def _control_usb(link: Any, stop: threading.Event) -> None:
+    """Unplug and replug on demand: lines on standard input, SIGUSR1/SIGUSR2."""
+    lock = threading.Lock()
+
+    def change(action: str, which: Optional[int]) -> None:
+        indices = range(len(link.units)) if which is None else [which]
+        with lock:
+            for i in indices:
+                try:
+                    unit = link.unplug(i) if action == "unplug" else link.replug(i)
+                except (ValueError, EposError) as exc:
+                    print(f"{action}: {exc}", file=sys.stderr, flush=True)
+                    continue
+                where = f" at {unit.devnode}" if unit.plugged else ""
+                print(f"{'replugged' if unit.plugged else 'unplugged'} {unit.url}{where}", flush=True)
+
+    def from_stdin() -> None:
+        for line in sys.stdin:
+            words = line.split()
+            if not words:
+                continue
+            action = {"unplug": "unplug", "replug": "replug", "plug": "replug"}.get(words[0])
+            try:
+                which = int(words[1]) if len(words) > 1 else None
+            except ValueError:
+                action = None
+            if action is None:
+                print(f"unknown command {line.strip()!r}: use 'unplug [N]' or 'replug [N]'",
+                      file=sys.stderr, flush=True)
+                continue
+            change(action, which)
+            if stop.is_set():
+                return
+
+    if threading.current_thread() is threading.main_thread():
+        # Signal handlers only set work for a thread: the change waits on the helper.
+        for signum, action in ((signal.SIGUSR1, "unplug"), (signal.SIGUSR2, "replug")):
+            signal.signal(signum, lambda *_, a=action: threading.Thread(
+                target=change, args=(a, None), daemon=True).start())
+    if sys.stdin is not None and not sys.stdin.closed:
+        threading.Thread(target=from_stdin, name="epos-sim-usb-control", daemon=True).start()

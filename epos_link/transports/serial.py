@@ -46,18 +46,41 @@ BITS_PER_BYTE = 10  # 8N1 (guide 2.2.6)
 DEFAULT_BAUDRATE = 115200  # guide 2.3.2 / factory setting of the EPOS4 RS232 interface
 WRITE_TIMEOUT = 2.0  # a stuck link must not block a write forever
 _RETRY_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR)
+# Open: EBUSY from a port another program opened exclusively (TIOCEXCL);
+# EAGAIN/EWOULDBLOCK from pyserial's flock when another program holds the lock.
+_BUSY_ERRNOS = (errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK)
 # Read timeouts used by the generic reader, largest first: the port keeps one
 # of a few values, and the loop in _read_generic makes up the rest.
 _LADDER = (0.1, 0.02, 0.005, 0.001, 0.0)
+# A TCP server of one link (epos-link sim --tcp, a serial-to-TCP converter)
+# serves one host at a time and closes any other: say so where it shows.
+_ONE_HOST = " (is another program connected to it? it serves one host at a time)"
+
+
+def _os_reason(exc: BaseException) -> str:
+    """Why an open failed, in the operating system's words, without the port's name.
+
+    pyserial words it as "could not open port X: [Errno 2] ...: 'X'", so
+    quoting it after our own "cannot open X:" would name the port three times.
+    """
+    for cause in (exc, exc.__cause__, exc.__context__):
+        code = getattr(cause, "errno", None)
+        if isinstance(code, int) and code > 0:
+            return os.strerror(code)
+    return str(exc)
 
 
 def _open_hint(url: str, exc: BaseException) -> str:
     text = str(exc)
-    if isinstance(exc, OSError) and exc.errno == errno.EACCES or "Permission denied" in text:
+    code = getattr(exc, "errno", None)
+    if isinstance(exc, OSError) and code == errno.EACCES or "Permission denied" in text:
         return (f"cannot open {url}: permission denied. On Linux add your user to the group "
                 f"that owns the port (usually 'dialout': sudo usermod -aG dialout $USER, "
                 f"then log in again)")
-    return f"cannot open {url}: {text}"
+    if code in _BUSY_ERRNOS:
+        return (f"cannot open {url}: the port is busy: another program has it open "
+                f"(tcp-bridge, another epos-link command, a terminal program); stop it first")
+    return f"cannot open {url}: {_os_reason(exc)}"
 
 
 class SerialTransport(Transport):
@@ -81,10 +104,15 @@ class SerialTransport(Transport):
     def open(self) -> None:
         if self._port is not None:
             return
+        options = dict(self._options)
+        if os.name == "posix" and "://" not in self.url:
+            # A device path is opened with pyserial's advisory lock (flock): a
+            # second program on one EPOS4 link would mix its frames into ours
+            # (the device serves one host, guide 2.3.2), so it is told "busy".
+            options.setdefault("exclusive", True)
         try:
             port = self._factory(self.url, baudrate=self.baudrate, bytesize=8, parity="N",
-                                 stopbits=1, timeout=0, write_timeout=WRITE_TIMEOUT,
-                                 **self._options)
+                                 stopbits=1, timeout=0, write_timeout=WRITE_TIMEOUT, **options)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportError(_open_hint(self.url, exc)) from exc
         self._port = port
@@ -192,9 +220,11 @@ class SerialTransport(Transport):
         except OSError as exc:
             if exc.errno in _RETRY_ERRNOS:
                 return b""
+            if exc.errno == errno.ECONNRESET:
+                raise TransportError(f"{self.url}: connection reset by the peer{_ONE_HOST}") from exc
             raise TransportError(f"read from {self.url} failed: {exc}") from exc
         if not data:
-            raise TransportError(f"{self.url}: connection closed by the peer")
+            raise TransportError(f"{self.url}: connection closed by the peer{_ONE_HOST}")
         return data
 
     def _read_generic(self, max_bytes: int, timeout: float) -> bytes:

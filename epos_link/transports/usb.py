@@ -9,11 +9,16 @@ vendor-specific (class 0xFF) interfaces first. Some units enumerate as FTDI
 open through the serial transport; ``usb://`` says so when it finds one.
 
 The libusb backend comes from the ``libusb-package`` wheel when installed,
-else from pyusb's own search (a system libusb-1.0). On Linux the device node
+else from pyusb's own search (a system libusb-1.0). ``EPOS_LINK_LIBUSB=system``
+takes the system library even when the wheel is installed, and
+``EPOS_LINK_LIBUSB=/path/to/libusb-1.0.so`` a given one: the wheel's libusb
+watches hotplug through its own netlink socket, which sees no emulated events
+(``epos-link sim --usb``), while Debian's is built with udev and does. pyusb
+loads one libusb per process, so the choice holds for the whole process. On Linux the device node
 needs a udev rule for non-root users::
 
-    # /etc/udev/rules.d/99-epos4.rules
-    SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", MODE="0666"
+    # /etc/udev/rules.d/70-epos4.rules (before 73-seat-late.rules, which applies uaccess)
+    SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", TAG+="uaccess"
     # units that enumerate as FTDI 0403:A8B0 (serial port /dev/ttyUSBn):
     ACTION=="add", ATTR{idVendor}=="0403", ATTR{idProduct}=="a8b0", RUN+="/sbin/modprobe ftdi_sio", RUN+="/bin/sh -c 'echo 0403 a8b0 > /sys/bus/usb-serial/drivers/ftdi_sio/new_id'"
 
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import errno
 import math
+import os
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 from urllib.parse import parse_qs, urlsplit
@@ -41,10 +47,14 @@ EPOS4_FTDI_ID = (0x0403, 0xA8B0)
 WRITE_TIMEOUT_MS = 1000
 _DRAIN_LIMIT = 64  # packets discarded at most by one reset_input
 
-UDEV_RULE = 'SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", MODE="0666"'
+# TAG+="uaccess": systemd-logind gives the user logged in at the seat access
+# (an ACL), no one else; a world-writable mode would give every local account the drive.
+# Headless machines use a group instead (docs/hardware.md).
+UDEV_RULES_FILE = "/etc/udev/rules.d/70-epos4.rules"  # must sort before 73-seat-late.rules
+UDEV_RULE = 'SUBSYSTEM=="usb", ATTR{idVendor}=="24e7", ATTR{idProduct}=="3b01", TAG+="uaccess"'
 PERMISSION_HELP = (
     "permission denied on the EPOS4 USB device. On Linux add a udev rule:\n"
-    f"  echo '{UDEV_RULE}' | sudo tee /etc/udev/rules.d/99-epos4.rules\n"
+    f"  echo '{UDEV_RULE}' | sudo tee {UDEV_RULES_FILE}\n"
     "  sudo udevadm control --reload-rules && sudo udevadm trigger\n"
     "then unplug and replug the EPOS4 (or run as root). On Windows install a WinUSB driver "
     "for it (e.g. with Zadig).")
@@ -62,13 +72,30 @@ def _usb() -> Any:
     return usb
 
 
+LIBUSB_ENV = "EPOS_LINK_LIBUSB"
+
+
 def default_backend() -> Any:
-    """libusb from the ``libusb-package`` wheel if installed, else None (pyusb searches)."""
-    try:
-        import libusb_package
-    except ImportError:
-        return None
-    return libusb_package.get_libusb1_backend()
+    """The libusb that ``EPOS_LINK_LIBUSB`` names (``system`` or a path); by default the
+    ``libusb-package`` wheel's if installed, else None (pyusb searches the system)."""
+    choice = os.environ.get(LIBUSB_ENV, "").strip()
+    if choice in ("", "bundled"):
+        try:
+            import libusb_package
+        except ImportError:
+            return None
+        return libusb_package.get_libusb1_backend()
+    _usb()
+    import usb.backend.libusb1 as libusb1
+
+    if choice == "system":
+        backend = libusb1.get_backend()  # ctypes' search: the system's libusb-1.0
+    else:
+        backend = libusb1.get_backend(find_library=lambda _name: choice)
+    if backend is None:
+        raise TransportError(f"{LIBUSB_ENV}={choice}: no usable libusb-1.0 there "
+                             "(use 'system', 'bundled' or the path of libusb-1.0.so)")
+    return backend
 
 
 @dataclass(frozen=True)
@@ -205,7 +232,11 @@ class UsbTransport(Transport):
         except (usb.core.USBError, OSError) as exc:
             if _is_permission(exc):
                 raise TransportError(PERMISSION_HELP) from exc
-            raise TransportError(f"cannot open the EPOS4 USB device: {exc}") from exc
+            if getattr(exc, "errno", None) == errno.EBUSY:
+                # libusb: LIBUSB_ERROR_BUSY, the interface is claimed by another process.
+                raise TransportError(f"cannot open {self.url}: the EPOS4 is busy (another program "
+                                     "has it open; stop that program first)") from exc
+            raise TransportError(f"cannot open {self.url}: {exc}") from exc
         self._dev = dev
         self._intf = number
         self._ep_in, self._ep_out = ep_in.bEndpointAddress, ep_out.bEndpointAddress
@@ -316,5 +347,5 @@ def open_usb(url: str, *, backend: Any = None, find: Optional[Callable[..., Any]
     return UsbTransport(serial=serial, index=index, backend=backend, find=find, url=url)
 
 
-__all__ = ["EPOS4_FTDI_ID", "EPOS4_USB_ID", "PERMISSION_HELP", "UDEV_RULE", "UsbDeviceInfo",
+__all__ = ["EPOS4_FTDI_ID", "EPOS4_USB_ID", "LIBUSB_ENV", "default_backend", "PERMISSION_HELP", "UDEV_RULE", "UsbDeviceInfo",
            "UsbTransport", "find_bulk_endpoints", "list_ftdi_ports", "list_usb_devices", "open_usb"]

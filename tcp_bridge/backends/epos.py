@@ -42,7 +42,9 @@ class EposBackend:
             try:
                 client = EposClient.open(url, gateway_node_id=gateway, **options)
             except Exception as exc:  # TransportError, OSError, bad options
-                raise ConfigError(f"bus {bus.name}: cannot open {url}: {exc}") from None
+                # A transport error already says "cannot open URL: why": name the URL once.
+                why = str(exc) if url in str(exc) else f"cannot open {url}: {exc}"
+                raise ConfigError(f"bus {bus.name}: {why}") from None
         self.client = client
         self.nodes: Dict[int, Any] = {}
 

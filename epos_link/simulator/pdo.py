@@ -1,0 +1,244 @@
+"""Transmit PDOs of a simulated drive, configured like an EPOS4's (0x1800/0x1A00 ...).
+
+Objects (CiA 301 V4.2 7.5.2.37 TPDO communication, 7.5.2.38 TPDO mapping;
+guide 3.3.3.1 and Figure 3-23 for the default COB-IDs):
+
+* 18xxh: sub 1 COB-ID (bit 31 = 1: the PDO is not valid), sub 2 transmission
+  type, sub 3 inhibit time in 100 us, sub 5 event timer in ms;
+* 1Axxh: sub 0 number of mapped objects, subs 1..8 ``index << 16 | subindex
+  << 8 | length in bits``.
+
+Rules for an SDO download (abort codes of CiA 301 Table 22):
+
+* the mapping (1Axxh any sub) can be changed only while the PDO is not valid,
+  and subs 1..8 only while sub 0 is 0 (the procedure of 7.5.2.38):
+  06010000h "unsupported access" otherwise (**chosen**: the code CiA 301
+  leaves to the device);
+* a mapped object must exist (06020000h), be mappable by the EDS
+  (``PDOMapping=1``, else 06040041h) and be mapped with its own length; all
+  mapped objects together fit 64 bits (06040042h);
+* the CAN identifier of a valid PDO cannot change (06090030h).
+
+Transmission, with what is **chosen** where CiA 301 leaves it to the device:
+
+* only in NMT Operational (guide 3.3.3.5, Table 3-13), only a valid PDO, and
+  only the event-driven transmission types 254/255; the synchronous types
+  (0..240) need a SYNC producer, which the simulator does not have, so they
+  are not sent (chosen);
+* on change: a PDO is sent when its data differ from the last sent, but not
+  sooner than the inhibit time after it; at least every event timer period
+  (if not 0); and at once on entering Operational (chosen);
+* the drive samples its mapped objects every ``tick`` seconds (default 2 ms,
+  chosen: a real EPOS4 samples in its control cycle); a change is sent up to
+  one tick late. A drive whose PDO data did not change at the last sample, and
+  that got no SDO write since, is sampled only every ``QUIET`` seconds (10 ms)
+  and when an event timer is due (chosen, to keep idle drives cheap: what
+  changes at rest without a write, such as the end of the self test or a fault
+  injected through the Python API, is sent up to 10 ms late);
+* sampled and sent under the drive's lock: a PDO received after the answer to
+  an SDO write shows the drive after that write (the order the bridge's PDO
+  reads rely on, ``tcp_bridge.pdo_status``).
+
+``refuse_mapping = True`` makes every mapping entry abort 06040041h, as a
+drive whose firmware does not allow those objects in a PDO (tests).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Dict, Final, Iterable, List, Optional, Tuple
+
+import can
+from canopen.objectdictionary import ODVariable
+from canopen.sdo import SdoAbortedError
+
+from .od import ABORT_NO_OBJECT, ABORT_RANGE, ObjectStore, Value
+
+ABORT_UNSUPPORTED: Final = 0x06010000
+ABORT_NOT_MAPPABLE: Final = 0x06040041
+ABORT_MAP_LENGTH: Final = 0x06040042
+NOT_VALID: Final = 1 << 31
+COB_ID_MASK: Final = 0x1FFFFFFF
+EVENT_DRIVEN: Final = frozenset({254, 255})
+TICK: Final = 0.002  # seconds between samples (chosen, see the module docstring)
+MAX_ENTRIES: Final = 8
+QUIET: Final = 0.01  # seconds between samples of a drive at rest (chosen, see above)
+
+
+@dataclass
+class _Sent:
+    data: Optional[bytes] = None
+    at: float = float("-inf")
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """One valid, event-driven TPDO as configured: what to sample and when to send."""
+
+    number: int
+    cob_id: int
+    inhibit: float  # seconds
+    timer: float  # seconds, 0: no event timer
+    objects: Tuple[Tuple[ODVariable, int], ...]  # (variable, bytes)
+
+
+class TransmitPdos:
+    """The TPDOs of one drive's object store: mapping rules and what is due to send."""
+
+    def __init__(self, store: ObjectStore) -> None:
+        self.store = store
+        self.refuse_mapping = False
+        self.numbers: Tuple[int, ...] = tuple(
+            n for n in range(512) if 0x1800 + n in store.od and 0x1A00 + n in store.od)
+        self._sent: Dict[int, _Sent] = {n: _Sent() for n in self.numbers}
+        self._plans: Optional[Tuple[_Plan, ...]] = None  # None: read the objects again
+        self._next_sample = float("-inf")  # a quiet drive is sampled again at this time
+        for n in self.numbers:
+            com, mapping = 0x1800 + n, 0x1A00 + n
+            store.add_write_hook(com, 1, lambda v, n=n: self._check_cob_id(n, v))
+            for sub in self._mapping_subs(com):
+                if sub != 1:
+                    store.add_write_hook(com, sub, lambda v: self._changed())
+            for sub in self._mapping_subs(mapping):
+                store.add_write_hook(mapping, sub, lambda v, n=n, sub=sub: self._check_map(n, sub, v))
+
+    def _changed(self) -> None:
+        self._plans = None  # the hook runs before the value is stored: plan again next time
+
+    def touch(self) -> None:
+        """An SDO write reached the drive: sample at the next tick."""
+        self._next_sample = float("-inf")
+
+    def wants_sample(self, now: float) -> bool:
+        return now >= self._next_sample
+
+    def _mapping_subs(self, index: int) -> List[int]:
+        return sorted(getattr(self.store.od[index], "subindices", {}))
+
+    # -- SDO download rules ----------------------------------------------------------
+
+    def _cob_id(self, n: int) -> int:
+        return self.store.get_int(0x1800 + n, 1)
+
+    def _check_cob_id(self, n: int, value: Value) -> None:
+        assert isinstance(value, int)
+        self._changed()
+        old = self._cob_id(n)
+        if not old & NOT_VALID and not value & NOT_VALID and (old ^ value) & COB_ID_MASK:
+            raise SdoAbortedError(ABORT_RANGE)  # a valid PDO keeps its identifier
+
+    def _check_map(self, n: int, sub: int, value: Value) -> None:
+        assert isinstance(value, int)
+        self._changed()
+        if not self._cob_id(n) & NOT_VALID:
+            raise SdoAbortedError(ABORT_UNSUPPORTED)  # destroy the PDO first
+        index = 0x1A00 + n
+        if sub == 0:
+            if value > MAX_ENTRIES or value > len(self._mapping_subs(index)) - 1:
+                raise SdoAbortedError(ABORT_MAP_LENGTH)
+            entries = [self.store.get_int(index, s) for s in range(1, value + 1)]
+            if sum(e & 0xFF for e in entries) > 64:
+                raise SdoAbortedError(ABORT_MAP_LENGTH)
+            return
+        if self.store.get_int(index, 0) != 0:
+            raise SdoAbortedError(ABORT_UNSUPPORTED)  # number of entries first set to 0
+        if value == 0:
+            return  # an empty entry
+        if self.refuse_mapping:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        var = self._mapped(value)
+        if not var.pdo_mappable or len(var) != value & 0xFF:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+
+    def _mapped(self, entry: int) -> ODVariable:
+        try:
+            return self.store.variable(entry >> 16, (entry >> 8) & 0xFF)
+        except SdoAbortedError:
+            raise SdoAbortedError(ABORT_NO_OBJECT) from None
+
+    # -- transmission ------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Not Operational, or reset (the objects may be back at their defaults):
+        nothing sent; on entering Operational every PDO goes out."""
+        self._plans = None
+        self._next_sample = float("-inf")
+        for sent in self._sent.values():
+            sent.data, sent.at = None, float("-inf")
+
+    def _plan(self) -> Tuple[_Plan, ...]:
+        get = self.store.get_int
+        plans = []
+        for n in self.numbers:
+            cob_id = get(0x1800 + n, 1)
+            if cob_id & NOT_VALID or get(0x1800 + n, 2) not in EVENT_DRIVEN:
+                continue
+            entries = [get(0x1A00 + n, sub) for sub in range(1, get(0x1A00 + n, 0) + 1)]
+            objects = tuple((self._mapped(e), (e & 0xFF) // 8) for e in entries if e)
+            plans.append(_Plan(n, cob_id & COB_ID_MASK, get(0x1800 + n, 3) * 1e-4,
+                               get(0x1800 + n, 5) * 1e-3, objects))
+        return tuple(plans)
+
+    def due(self, now: float) -> List[Tuple[int, bytes]]:
+        """(COB-ID, data) of every PDO to send at ``now``; the caller holds the drive's lock
+        and has brought the drive model up to ``now``."""
+        if self._plans is None:
+            self._plans = self._plan()
+        out: List[Tuple[int, bytes]] = []
+        get = self.store.get
+        quiet, next_sample = True, now + QUIET
+        for plan in self._plans:
+            data = b"".join(var.encode_raw(get(var.index, var.subindex))[:size]
+                            for var, size in plan.objects)
+            sent = self._sent[plan.number]
+            quiet = quiet and data == sent.data
+            changed = data != sent.data and now - sent.at >= plan.inhibit
+            if changed or (plan.timer > 0 and now - sent.at >= plan.timer):
+                sent.data, sent.at = data, now
+                out.append((plan.cob_id, data))
+            if plan.timer > 0:
+                next_sample = min(next_sample, sent.at + plan.timer)
+        self._next_sample = next_sample if quiet else float("-inf")
+        return out
+
+
+class PdoTicker:
+    """One thread per simulator: every ``tick`` seconds, each Operational drive sends
+    what is due (:meth:`TransmitPdos.due`) on the virtual bus."""
+
+    def __init__(self, drives: Callable[[], Iterable[object]], clock: Callable[[], float], *,
+                 tick: float = TICK) -> None:
+        if not tick > 0:
+            raise ValueError("the PDO tick must be positive")
+        self._drives = drives
+        self._clock = clock
+        self.tick = tick
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sim-tpdo", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            for drive in list(self._drives()):
+                send = getattr(drive, "send_pdos", None)
+                if send is not None:
+                    try:
+                        send(self._clock())
+                    except can.CanError:
+                        return  # the bus is closed: the simulator is closing
+            next_at += self.tick
+            delay = next_at - time.monotonic()
+            if delay < 0:  # late (a loaded machine): skip ahead, never burst
+                next_at, delay = time.monotonic(), 0.0
+            self._stop.wait(delay)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(5)
+
+
+__all__ = ["ABORT_MAP_LENGTH", "ABORT_NOT_MAPPABLE", "ABORT_UNSUPPORTED", "PdoTicker",
+           "TICK", "TransmitPdos"]

@@ -1,0 +1,180 @@
+"""``tcp-bridge check``: a read-only pre-flight of the axis table against the drives.
+
+::
+
+    tcp-bridge check --config axes.toml [--json] [-v]
+    tcp-bridge check --simulate [--axes N] [--json]
+
+It opens every bus of the table with the bridge's own backends
+(:mod:`tcp_bridge.backends`) and, for each axis with a node, *reads* the
+device type (0x1000), name (0x1008), identity (0x1018/01..04), statusword
+(6041h), mode display (6061h) and actual position (6064h), and for a maxon
+EPOS4 (device 5) its velocity unit (60A9h) and main sensor resolution
+(3000h/05h). :mod:`tcp_bridge.preflight` turns that into one verdict per axis.
+Exit status 0 when every axis answers as configured, 1 otherwise, 2 when the
+table itself cannot be used.
+
+**It writes nothing to any drive**: only SDO uploads (``node.sdo.upload``),
+no download, no NMT command, no PDO (tests count the writes at the simulated
+drives' object stores). Opening a backend sends nothing either: a python-can
+bus, an ``EposClient`` on a serial/USB link, or the embedded simulator. The
+state file is read (so that inversion and offset of S22/S25 apply to the
+position shown) and never written.
+
+Time: an absent node costs one SDO timeout (its first read), then the check
+moves on; one that answers costs a dozen uploads. Buses are checked one after
+the other, each closed before the next opens.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Any, Callable, Dict, List, Optional
+
+from .axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
+from .errors import BridgeError, DeviceFailure
+from .parameters import ParameterStore
+from .preflight import AxisReport, Reading, as_json, judge, no_bus, no_drive
+from .preflight import table as format_table
+from .sdo import NodeSilent, SdoPort
+
+Opener = Callable[[BusConfig, List[AxisConfig]], Any]
+
+# (key in Reading.failures, attribute, index, subindex); read in this order.
+IDENTITY = (("1018h/01", "vendor_id", 0x1018, 1), ("1018h/02", "product_code", 0x1018, 2),
+            ("1018h/03", "revision", 0x1018, 3), ("1018h/04", "serial", 0x1018, 4))
+DRIVE = (("6041h", "statusword", 0x6041, 0), ("6061h", "mode", 0x6061, 0),
+         ("6064h", "position", 0x6064, 0))
+EPOS4_UNITS = (("60A9h", "velocity_unit", 0x60A9, 0), ("3000h/05", "sensor_resolution", 0x3000, 5))
+
+
+def read_node(port: SdoPort, device: DeviceCode) -> Reading:
+    """Upload the objects of the check from one node; never a download.
+
+    The first read (0x1000, mandatory for every CANopen device) tells whether
+    the node is there at all; a silent node is not asked anything else.
+    """
+    reading = Reading()
+    try:
+        reading.device_type = port.read(0x1000, 0, size=4, signed=False)
+    except NodeSilent as exc:
+        reading.silent = _why(exc)
+        return reading
+    except DeviceFailure as exc:
+        reading.failures["1000h"] = _why(exc)
+    _describe_device_name(port.node)
+    try:
+        reading.name = port.upload(0x1008, 0).rstrip(b"\0").decode("latin-1")
+    except DeviceFailure as exc:
+        reading.failures["1008h"] = _why(exc)
+    objects = IDENTITY + DRIVE
+    if device is DeviceCode.C_DC_MAXON_EPOS4:
+        objects += EPOS4_UNITS
+    for key, attribute, index, subindex in objects:
+        try:
+            setattr(reading, attribute, port.read(index, subindex))
+        except DeviceFailure as exc:
+            reading.failures[key] = _why(exc)
+    return reading
+
+
+def _describe_device_name(node: Any) -> None:
+    """Tell the node's dictionary that 0x1008 is a VISIBLE_STRING (CiA 301 object 1008h).
+
+    The epos_link gateway adapter reads an object its dictionary does not
+    describe with ReadObject, 4 bytes ("EPOS" of "EPOS4"); described as a
+    string it is read whole (segmented). The epos and sim backends default to
+    an empty dictionary. This changes only the check's own node object.
+    """
+    from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
+
+    od = getattr(getattr(node, "sdo", None), "od", None)
+    if isinstance(od, ObjectDictionary) and 0x1008 not in od:
+        name = ODVariable("Manufacturer device name", 0x1008, 0)
+        name.data_type = datatypes.VISIBLE_STRING
+        od.add_object(name)
+
+
+def _why(exc: DeviceFailure) -> str:
+    """The device's answer without the port's name and object (the row already says them)."""
+    return str(exc).split(" failed: ", 1)[-1]
+
+
+def check(axis_table: AxisTable, *, opener: Optional[Opener] = None) -> List[AxisReport]:
+    """One report per axis of ``axis_table``, in AxAddr order. Reads only (module docstring)."""
+    if opener is None:
+        from .backends import open_backend as opener
+    params = ParameterStore(axis_table)  # the state file's inversion/offset, read only
+    reports: Dict[int, AxisReport] = {}
+    try:
+        for name, bus in axis_table.buses.items():
+            axes = [a for a in axis_table.axes.values() if a.bus == name and a.has_node]
+            if axes:
+                reports.update(_check_bus(bus, axes, params, opener))
+        for addr, axis in axis_table.axes.items():
+            if not axis.has_node:
+                reports[addr] = no_drive(axis)
+    finally:
+        params.close()
+    return [reports[addr] for addr in sorted(reports)]
+
+
+def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
+               opener: Opener) -> Dict[int, AxisReport]:
+    try:
+        backend = opener(bus, axes)
+    except (ConfigError, OSError) as exc:
+        return {a.addr: no_bus(a, str(exc)) for a in axes}
+    try:
+        out: Dict[int, AxisReport] = {}
+        for axis in axes:
+            port = SdoPort(backend.node(axis.node_id), name=f"axis {axis.addr}")
+            out[axis.addr] = judge(axis, read_node(port, axis.device), params.scaling(axis.addr))
+        return out
+    finally:
+        backend.close()
+
+
+# -- command line (wired into tcp_bridge.cli) ------------------------------------------------
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", metavar="FILE", help="axis table (TOML) to check")
+    src.add_argument("--simulate", action="store_true",
+                     help="check the simulated drives that serve --simulate would use")
+    p.add_argument("--axes", type=_axes, default=3, metavar="N",
+                   help="with --simulate: how many simulated axes (default 3)")
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object per axis (addr, verdict, ok, detail, what was read)")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="log the backends' own messages (canopen, python-can)")
+
+
+def _axes(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of axes") from None
+
+
+def run(args: argparse.Namespace, prog: str = "tcp-bridge check") -> int:
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(name)s: %(message)s")
+    if not args.verbose:
+        # An absent node's SDO timeout is the check's answer "absent", not a log line.
+        logging.getLogger("canopen").setLevel(logging.CRITICAL)
+    try:
+        axes = simulated_table(args.axes) if args.simulate else AxisTable.load(args.config)
+        reports = check(axes)
+    except (ConfigError, BridgeError) as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        for report in reports:
+            print(as_json(report))
+    else:
+        print(format_table(reports))
+    return 0 if all(r.ok for r in reports) else 1
+

@@ -1,0 +1,394 @@
+"""One drive's CiA 402 power sequences under the safety rule (see :mod:`tcp_bridge.motion`).
+
+Enable, disable, NMT reset, fault reset, mode changes and stop, each bounded
+and checked on the statusword; the guard :meth:`Cia402._lower` that every
+lowering passes; and what the bridge knows about power cycles (rule 3).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from enum import Enum
+from typing import Callable, Final, List, Optional, Protocol
+
+from epos_link.cia402 import State, state_from_statusword
+
+from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, STATUSWORD,
+                            TARGET_VELOCITY, Cw, Deadline, Sw, Timing, decode_state)
+from ..errors import DeviceFailure
+from ..sdo import NodeSilent, SdoPort
+from .start import MoveStarts, OutcomeUnknown
+
+log = logging.getLogger("tcp_bridge.motion")
+
+VELOCITY_ACTUAL: Final = 0x606C
+
+
+class Why(Enum):
+    """Who asked for a lowering of the state (rule 1)."""
+
+    CLIENT_DISABLE = "S04=0"
+    CLIENT_RESET_NODE = "S16=1"
+    POWER_CYCLE = "enable after a power cycle"  # never allowed on an enabled axis
+
+
+CLIENT_REQUESTS: Final = frozenset({Why.CLIENT_DISABLE, Why.CLIENT_RESET_NODE})
+# States from which a fall back to SWITCH ON DISABLED is worth a look (rule 3).
+_POWERED: Final = frozenset({State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
+                             State.OPERATION_ENABLED})
+_BOOT_STATES: Final = frozenset({State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON})
+
+
+class SafetyRefusal(DeviceFailure):
+    """The bridge refused to lower the state of an axis or to reset it (rule 1)."""
+
+
+class Restore(Protocol):
+    """What enable needs of the parameters the bridge keeps (rule 3)."""
+
+    def differs(self) -> Optional[str]:
+        """Why the drive no longer holds the values the bridge wrote, None if it does."""
+
+    def write(self) -> None:
+        """Write every stored drive parameter (spec 85)."""
+
+    def ignore_differences(self) -> None:
+        """From now on :meth:`differs` answers None."""
+
+
+class Cia402(MoveStarts):
+    """The sequences of one drive, through its :class:`~tcp_bridge.sdo.SdoPort`.
+
+    It watches every statusword the port reads (polls of R10, R04, R82 too), so
+    a drive that falls back to SWITCH ON DISABLED is noticed whoever read it.
+    ``listeners`` are called with ``"suspect"`` (the drive may have lost its
+    RAM values: read units again) and ``"reset"`` (it has: forget what was
+    written to it). ``coasting`` tells whether the axis still moves while
+    its power stage is off (606Ch); without it, 606Ch is read raw.
+    """
+
+    def __init__(self, port: SdoPort, timing: Timing = Timing(), *,
+                 clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.port = port
+        self.timing = timing
+        self._clock = clock
+        self._sleep = sleep
+        self._last_state: Optional[State] = None
+        self.power_cycle_evidence: Optional[str] = None
+        self.restore_pending = True  # the first enable writes the stored parameters
+        self.halt_owed = False  # a move's outcome was unknown and its halt not yet sent
+        self.listeners: List[Callable[[str], None]] = []
+        self.coasting: Callable[[], bool] = lambda: self.port.read(VELOCITY_ACTUAL, 0) != 0
+        self._own_reset_until = float("-inf")  # boot-ups before this are our own reset's
+        watch = getattr(port, "watch", None)
+        if watch is not None:
+            watch(STATUSWORD, self._observe)
+
+    # -- observation (rule 3) -----------------------------------------------------
+
+    def _observe(self, statusword: int) -> None:
+        state = state_from_statusword(statusword)
+        if state is None:
+            return
+        if state in _BOOT_STATES and self._last_state in _POWERED:
+            log.warning("%s: the drive fell back from %s to %s (a power cycle, or a quick "
+                        "stop input): the next enable checks and writes its parameters",
+                        self.port.name, self._last_state.name, state.name)
+            self.restore_pending = True
+            self._tell("suspect")
+        self._last_state = state
+
+    def note_power_cycle(self, why: str) -> None:
+        """Evidence of a power cycle: the next enable resets and restores the drive."""
+        if self.power_cycle_evidence is None:
+            log.warning("%s: power cycle detected: %s", self.port.name, why)
+        self.power_cycle_evidence = why
+        self._tell("suspect")
+
+    def note_bootup(self) -> None:
+        """A boot-up message (CAN backend; canopen's heartbeat callback, state 0)."""
+        if self._clock() < self._own_reset_until:
+            return  # the boot-up that answers the bridge's own NMT reset
+        self.note_power_cycle("boot-up message received")
+
+    def _tell(self, event: str) -> None:
+        for listener in self.listeners:
+            listener(event)
+
+    def _expect(self, state: Optional[State]) -> None:
+        # The bridge itself is about to take the drive there: nothing to look at.
+        self._last_state = state
+
+    def statusword(self) -> int:
+        sw = self.port.read(STATUSWORD, 0)
+        if getattr(self.port, "watch", None) is None:
+            self._observe(sw)
+        return sw
+
+    def state(self) -> State:
+        return decode_state(self.statusword())
+
+    def wait_status(self, done: Callable[[int], bool], timeout: float, what: str) -> int:
+        """Poll 6041h until ``done(statusword)``; DeviceFailure after ``timeout`` seconds."""
+        deadline = self._clock() + timeout
+        while True:
+            sw = self.statusword()
+            if done(sw):
+                return sw
+            if self._clock() >= deadline:
+                raise DeviceFailure(f"{self.port.name}: {what} not seen within {timeout:g} s "
+                                    f"(statusword 0x{sw:04X})")
+            self._sleep(self.timing.poll_interval)
+
+    def require_enabled(self) -> int:
+        sw = self.statusword()
+        state = decode_state(sw)
+        if state is not State.OPERATION_ENABLED:
+            raise DeviceFailure(f"{self.port.name}: not enabled ({state.name})")
+        return sw
+
+    # -- rule 1: lowering ------------------------------------------------------------
+
+    def _lower(self, why: Why, deadline: Deadline) -> State:
+        """The guard every lowering passes: refuse on an enabled axis unless a client
+        asked; bring an enabled axis to rest first; let a quick stop finish."""
+        state = self.state()
+        if state is State.OPERATION_ENABLED:
+            if why not in CLIENT_REQUESTS:
+                raise SafetyRefusal(f"{self.port.name}: refused ({why.value}): the axis is "
+                                    "enabled and no client asked to disable or reset it")
+            self.bring_to_rest(deadline)
+        elif state is State.QUICK_STOP_ACTIVE:
+            self._end_of_quick_stop(deadline)
+        return state
+
+    def _end_of_quick_stop(self, deadline: Deadline) -> None:
+        # Still on its quick stop ramp, maybe: let it finish (sw bit 10).
+        self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
+                         "end of quick stop")
+
+    def bring_to_rest(self, deadline: Deadline) -> None:
+        """Halt (cw bit 8) and wait for standstill (sw bit 10) within ``deadline``."""
+        self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)
+        self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
+                         "standstill after halt (the axis stays enabled and halted)")
+
+    def disable(self) -> None:
+        """S04=0: at rest first, then Disable Operation (07h), then Shutdown (06h)."""
+        deadline = Deadline(self._clock, self.timing.ack_timeout)
+        state = self._lower(Why.CLIENT_DISABLE, deadline)
+        if state is State.OPERATION_ENABLED:
+            self._step(Cw.SWITCH_ON, State.SWITCHED_ON, deadline)  # disable operation
+            state = State.SWITCHED_ON
+        if state is State.SWITCHED_ON:
+            self._step(Cw.SHUTDOWN, State.READY_TO_SWITCH_ON, deadline)
+        elif state is State.QUICK_STOP_ACTIVE:  # at rest (_lower): disable voltage
+            self._expect(None)
+            self._step(Cw.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED, deadline)
+        # not ready, switch on disabled, ready, fault: the drive function is already off
+
+    def reset_node(self, why: Why, wait: bool = False) -> None:
+        """NMT reset node (S16=1, or enable after a power cycle with ``wait``).
+
+        Never to an axis that still moves: an enabled one is halted first (a
+        client's S16 only), one that coasts with its power stage off (606Ch not
+        zero) is waited for. NMT is unconfirmed (CiA 301 7.2.8.3.2.1): S16
+        answers once it is sent; the power-cycle path waits for the node to boot
+        (:meth:`wait_for_node`). Either way the next enable writes the
+        parameters back first.
+        """
+        deadline = Deadline(self._clock, self.timing.ack_timeout)
+        state = self._lower(why, deadline)
+        if state is not State.OPERATION_ENABLED:
+            self._wait_coasting(deadline)
+        self._expect(None)
+        grace = self.timing.reset_delay + self.timing.reset_timeout + 1.0
+        self._own_reset_until = self._clock() + grace
+        self.port.nmt_reset()
+        self.power_cycle_evidence = None
+        self.restore_pending = True
+        self._tell("reset")
+        if wait:
+            self.wait_for_node()
+            self._own_reset_until = self._clock() + 1.0  # its boot-up may still be in flight
+
+    def _wait_coasting(self, deadline: Deadline) -> None:
+        while True:
+            try:
+                if not self.coasting():
+                    return
+            except NodeSilent:
+                raise
+            except DeviceFailure:
+                return  # no velocity actual value (an abort): nothing to wait for
+            if deadline.expired():
+                raise SafetyRefusal(f"{self.port.name}: refused an NMT reset: the axis still "
+                                    "moves (606Ch is not zero)")
+            self._sleep(max(self.timing.poll_interval, 0.01))
+
+    def fault_reset(self) -> None:
+        """S17: rising edge of cw bit 7 (transition 15), then cw 00h; no-op without a fault."""
+        sw = self.statusword()
+        if decode_state(sw) is State.FAULT_REACTION_ACTIVE:
+            sw = self.wait_status(lambda s: decode_state(s) is State.FAULT,
+                                  self.timing.state_timeout, "FAULT after fault reaction")
+        if not sw & Sw.FAULT:
+            return  # a reset must never disable a running axis
+        self._expect(None)
+        self.port.write(CONTROLWORD, 0, Cw.DISABLE_VOLTAGE)  # bit 7 low: the edge is ours
+        self.port.write(CONTROLWORD, 0, Cw.FAULT_RESET)
+        self.wait_status(lambda s: not s & Sw.FAULT, self.timing.state_timeout,
+                         "fault cleared")
+        self.port.write(CONTROLWORD, 0, Cw.DISABLE_VOLTAGE)
+
+    def wait_for_node(self) -> None:
+        """After an NMT reset: wait ``reset_delay``, then poll until the node shows the
+        state a drive boots into (SWITCH ON DISABLED, or FAULT if it boots faulty).
+
+        Powered states would be the node before the reset took effect, and a
+        silent node is still booting; both are waited out within ``reset_timeout``.
+        """
+        self._sleep(self.timing.reset_delay)
+        deadline = self._clock() + self.timing.reset_timeout
+        booted = (State.SWITCH_ON_DISABLED, State.FAULT)
+        while True:
+            try:
+                state = self.state()
+                if state in booted:
+                    return
+                why = f"still {state.name}"
+            except DeviceFailure as exc:
+                why = str(exc)
+            if self._clock() >= deadline:
+                raise DeviceFailure(f"{self.port.name}: not back {self.timing.reset_timeout:g} s "
+                                    f"after NMT reset ({why})")
+            self._sleep(max(self.timing.poll_interval, 0.01))
+
+    # -- enable (rules 1 to 3) -----------------------------------------------------------
+
+    def enable(self, restore: Optional[Restore] = None) -> None:
+        """S04=1: to OPERATION ENABLED with halt set, one checked step at a time.
+
+        An enabled axis is left exactly as it is. After a power cycle (rule 3)
+        the node is reset and the parameters written first.
+        """
+        state = self.state()
+        if state is State.OPERATION_ENABLED:
+            return
+        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            raise DeviceFailure(f"{self.port.name}: in {state.name}; reset it (S17) first")
+        if state is State.QUICK_STOP_ACTIVE:
+            self._end_of_quick_stop(Deadline(self._clock, self.timing.ack_timeout))
+        if self.power_cycle_evidence is None and restore is not None:
+            differs = restore.differs()
+            if differs is not None:
+                self.note_power_cycle(differs)
+        if self.power_cycle_evidence is not None:
+            self.reset_node(Why.POWER_CYCLE, wait=True)
+        if self.restore_pending and restore is not None:
+            restore.write()
+            still = restore.differs()
+            if still is not None:
+                # A drive that does not keep a value as written would look power
+                # cycled at every enable: from now on trust the other evidence only.
+                log.warning("%s: after writing the parameters, %s; parameter values are no "
+                            "longer taken as evidence of a power cycle", self.port.name, still)
+                restore.ignore_differences()
+        self.restore_pending = False
+        self._enable_steps(Deadline(self._clock, self.timing.ack_timeout))
+
+    def _enable_steps(self, deadline: Deadline) -> None:
+        # Halt rides along on every step (bit 8 is ignored outside OPERATION
+        # ENABLED), so the drive arrives there halted: rule 2.
+        steps = {
+            State.SWITCH_ON_DISABLED: (Cw.SHUTDOWN, State.READY_TO_SWITCH_ON),
+            State.READY_TO_SWITCH_ON: (Cw.SWITCH_ON, State.SWITCHED_ON),
+            State.SWITCHED_ON: (Cw.ENABLE_OPERATION, State.OPERATION_ENABLED),
+            State.QUICK_STOP_ACTIVE: (Cw.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),
+        }
+        state = self.state()
+        for _ in range(8):  # at most 4 steps are ever needed; the rest is slack
+            if state is State.OPERATION_ENABLED:
+                return
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                raise DeviceFailure(f"{self.port.name}: in {state.name}; reset it (S17) first")
+            if state is State.NOT_READY_TO_SWITCH_ON:  # self test: wait, it moves by itself
+                state = decode_state(self.wait_status(
+                    lambda sw: decode_state(sw) is not State.NOT_READY_TO_SWITCH_ON,
+                    deadline.time_left(self.timing.state_timeout), "end of self test"))
+                continue
+            if state is State.QUICK_STOP_ACTIVE:
+                self._end_of_quick_stop(deadline)  # rule 1: no power cut while it moves
+            command, target = steps[state]
+            if target is State.SWITCH_ON_DISABLED:
+                self._expect(None)
+            state = self._step(command | Cw.HALT, target, deadline)
+        raise DeviceFailure(f"{self.port.name}: enable did not reach OPERATION_ENABLED")
+
+    def _step(self, command: int, target: State, deadline: Deadline) -> State:
+        self.port.write(CONTROLWORD, 0, command)
+        return decode_state(self.wait_status(
+            lambda sw: decode_state(sw) is target, deadline.time_left(self.timing.state_timeout),
+            target.name))
+
+    # -- modes and stop (rule 2) ----------------------------------------------------------
+
+    def set_mode(self, mode: int, deadline: Optional[Deadline] = None) -> None:
+        """S07 and moves: write 6060h and wait until 6061h shows it (CiA 402-2 6.3).
+
+        A mode change of an enabled axis halts it first and leaves halt set.
+        """
+        deadline = deadline or Deadline(self._clock, self.timing.ack_timeout)
+        if self.port.read(MODES_DISPLAY, 0) == mode:
+            return
+        if decode_state(self.statusword()) is State.OPERATION_ENABLED:
+            self.bring_to_rest(deadline)
+        self.port.write(MODES_OF_OPERATION, 0, mode)
+        timeout = deadline.time_left(self.timing.state_timeout)
+        stop_at = Deadline(self._clock, timeout)
+        while self.port.read(MODES_DISPLAY, 0) != mode:
+            if stop_at.expired():
+                raise DeviceFailure(f"{self.port.name}: mode {mode} not displayed in 6061h "
+                                    f"within {timeout:g} s")
+            self._sleep(self.timing.poll_interval)
+
+    def halt(self) -> None:
+        """S00=8: halt (cw bit 8) in any mode and clear the target velocity.
+
+        Halt stays set until the next move. An axis that is not enabled is not
+        driven. 60FFh is cleared as well, so that even a controlword written by
+        someone else cannot resume a velocity move; a drive without 60FFh (no
+        profile velocity mode) refuses that write, which does not matter.
+        """
+        if self.state() is not State.OPERATION_ENABLED:
+            self.halt_owed = False
+            return
+        self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)
+        self.halt_owed = False
+        try:
+            self.port.write(TARGET_VELOCITY, 0, 0)
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            pass  # the drive has no 60FFh: halt alone holds it
+
+    def halt_or_owe(self) -> None:
+        """Halt after a failed move; a silent drive owes the halt (rule 4)."""
+        try:
+            self.halt()
+        except DeviceFailure as exc:
+            self.halt_owed = True
+            log.error("%s: halt after a failed move failed (%s); it is sent before the next "
+                      "command to this axis", self.port.name, exc)
+
+    def settle(self) -> None:
+        """Before any command to this axis: send a halt it owes (rule 4)."""
+        if self.halt_owed:
+            log.warning("%s: sending the halt owed since a move's outcome was unknown",
+                        self.port.name)
+            self.halt()
+
+
+__all__ = ["CLIENT_REQUESTS", "Cia402", "OutcomeUnknown", "Restore", "SafetyRefusal", "State",
+           "Why"]

@@ -1,0 +1,214 @@
+"""How a move starts, and how the bridge knows that it did (safety rule 2 and 4).
+
+A move is prepared with writes that start nothing (mode, target, bit 4 low),
+then started by exactly one write per axis, the *start write*, and proven by
+reading the drive: profile position by the set-point acknowledge (sw bit 12,
+CiA 402-2 6.7.1), homing by its status bits 13/12/10 (6.6), profile velocity by
+60FFh and the controlword read back (6.9 has no handshake). If the answer to a
+start write is lost, the write may or may not have arrived: the drive is read
+back until that is known, and only a node silent for the whole bound leaves
+the outcome unknown.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Sequence, Tuple, Union
+
+from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, TARGET_POSITION, TARGET_VELOCITY, Cw,
+                            Deadline, Mode, Sw)
+from ..errors import DeviceFailure
+from ..sdo import NodeSilent
+
+if TYPE_CHECKING:
+    from .drive import Cia402
+
+log = logging.getLogger("tcp_bridge.motion")
+
+
+class OutcomeUnknown(DeviceFailure):
+    """The node went silent after a write that starts a move (rule 4)."""
+
+
+@dataclass(frozen=True)
+class PositionMove:
+    target: int
+    relative: bool
+
+
+@dataclass(frozen=True)
+class VelocityMove:
+    velocity: int
+
+
+@dataclass(frozen=True)
+class HomingMove:
+    pass
+
+
+Move = Union[PositionMove, VelocityMove, HomingMove]
+
+
+def _pp_base(what: PositionMove) -> int:
+    return Cw.ENABLE_OPERATION | Cw.CHANGE_SET_IMMEDIATELY | (Cw.RELATIVE if what.relative else 0)
+
+
+class MoveStarts:
+    """The move half of :class:`~tcp_bridge.motion.Cia402` (mixed in there)."""
+
+    def move(self: "Cia402", moves: Sequence[Tuple["Cia402", Move]],
+             on_accept: Callable[[int], None]) -> None:
+        """Start ``moves`` (pairs of drive and move) in one bus job.
+
+        Used alone for one axis and together for a master and its slaves on the
+        same bus: every axis must be enabled, then each is prepared, then the
+        start writes go out back to back, so the axes start within a few SDO
+        round trips of each other. ``on_accept(i)`` is called when axis ``i``
+        accepted its move (R86). Raises on the first failure; once a start write
+        has gone out, every axis of the move is halted first, or owes a halt if
+        it is silent (rule 4: NAK leaves nothing moving).
+        """
+        deadline = Deadline(self._clock, self.timing.ack_timeout)
+        for drive, _ in moves:
+            drive.require_enabled()  # every axis can move, or none is touched
+        for drive, what in moves:
+            drive._prepare(what, deadline)
+        sent = False
+        try:
+            for i, (drive, what) in enumerate(moves):
+                sent = True
+                drive._start(what, deadline)
+                on_accept(i)
+            for drive, what in moves:
+                drive._finish(what)
+        except BaseException:
+            if sent:
+                for drive, _ in moves:
+                    drive.halt_or_owe()
+            raise
+
+    def _prepare(self: "Cia402", what: Move, deadline: Deadline) -> None:
+        """Everything before the start write: idempotent, starts nothing."""
+        if isinstance(what, PositionMove):
+            self.set_mode(Mode.PROFILE_POSITION, deadline)
+            halt = self.port.read(CONTROLWORD, 0) & Cw.HALT
+            self.port.write(TARGET_POSITION, 0, what.target)
+            # Bit 4 low (keeping halt as it is), so that the start write is an edge.
+            self.port.write(CONTROLWORD, 0, _pp_base(what) | halt)
+            self.wait_status(lambda sw: not sw & Sw.OP_MODE_12, deadline.time_left(),
+                             "set-point acknowledge low")
+        elif isinstance(what, VelocityMove):
+            if self.port.read(MODES_DISPLAY, 0) != Mode.PROFILE_VELOCITY:
+                self.set_mode(Mode.PROFILE_VELOCITY, deadline)  # halts first: rule 2
+        else:
+            self.set_mode(Mode.HOMING, deadline)
+            self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # bit 4 low
+
+    def _start(self: "Cia402", what: Move, deadline: Deadline) -> None:
+        """The start write(s) of ``what``, and the proof that the drive took them."""
+        if isinstance(what, VelocityMove):
+            # Running unhalted, the new 60FFh is itself the start; halted, the
+            # release of halt is. Both are read back if an answer is lost.
+            halted = self.port.read(CONTROLWORD, 0) & Cw.HALT
+            self._write_confirmed(TARGET_VELOCITY, what.velocity, deadline)
+            if halted:
+                self._write_confirmed(CONTROLWORD, Cw.ENABLE_OPERATION, deadline)
+            return
+        word = (_pp_base(what) | Cw.NEW_SET_POINT if isinstance(what, PositionMove)
+                else Cw.ENABLE_OPERATION | Cw.NEW_SET_POINT)  # edge, halt released
+        try:
+            self.port.write(CONTROLWORD, 0, word)
+        except NodeSilent as exc:
+            log.warning("%s: no answer to the move's start write (%s); reading back",
+                        self.port.name, exc)
+            self._resolve_edge(what, word, deadline)
+            return
+        sw = self.wait_status(lambda s: _accepted(what, s), deadline.time_left(),
+                              "set-point acknowledge" if isinstance(what, PositionMove)
+                              else "homing started")
+        if isinstance(what, HomingMove) and sw & Sw.OP_MODE_13:
+            raise DeviceFailure(f"{self.port.name}: homing error (statusword 0x{sw:04X})")
+
+    def _resolve_edge(self: "Cia402", what: Move, word: int, deadline: Deadline) -> None:
+        """Rule 4: after a lost answer to an edge of bit 4, read back until it is known."""
+        while True:
+            try:
+                cw = self.port.read(CONTROLWORD, 0)
+                sw = self.statusword()
+            except NodeSilent as exc:
+                self._silent(exc, deadline)
+                continue
+            arrived = (cw & 0xFFFF) == word
+            if arrived and _accepted(what, sw):
+                log.warning("%s: the start write had arrived; the move started", self.port.name)
+                return
+            if deadline.expired():
+                raise DeviceFailure(f"{self.port.name}: the move did not start (controlword "
+                                    f"0x{cw:04X}, statusword 0x{sw:04X})")
+            if not arrived:
+                # It never arrived: nothing started, so sending it again is the first start.
+                try:
+                    self.port.write(CONTROLWORD, 0, word)
+                except NodeSilent:
+                    pass  # read back again
+                continue
+            self._sleep(self.timing.poll_interval)
+
+    def _write_confirmed(self: "Cia402", index: int, value: int, deadline: Deadline) -> None:
+        """Write an object whose write may start motion; after a lost answer, read it
+        back (writing again only when it certainly did not arrive)."""
+        try:
+            self.port.write(index, 0, value)
+            return
+        except NodeSilent as exc:
+            log.warning("%s: no answer to the start write of 0x%04X (%s); reading back",
+                        self.port.name, index, exc)
+        mask = 0xFFFF if index == CONTROLWORD else -1
+        while True:
+            try:
+                held = self.port.read(index, 0)
+            except NodeSilent as exc:
+                self._silent(exc, deadline)
+                continue
+            if held & mask == value & mask:
+                log.warning("%s: the start write of 0x%04X had arrived", self.port.name, index)
+                return
+            if deadline.expired():
+                raise DeviceFailure(f"{self.port.name}: 0x{index:04X} holds {held}, not "
+                                    f"{value}: the move did not start")
+            try:
+                self.port.write(index, 0, value)
+                return
+            except NodeSilent:
+                continue
+
+    def _silent(self: "Cia402", exc: Exception, deadline: Deadline) -> None:
+        if deadline.expired():
+            raise OutcomeUnknown(f"{self.port.name}: outcome unknown: the node stayed silent "
+                                 f"after the move's start write ({exc}); the axis may be "
+                                 "moving") from exc
+        self._sleep(max(self.timing.poll_interval, 0.01))
+
+    def _finish(self: "Cia402", what: Move) -> None:
+        """Profile position handshake clean-up (bit 4 low); the move runs regardless.
+
+        Not for homing, where bit 4 falling would interrupt the homing (CiA 402-2
+        6.6.1.1), nor for profile velocity, which has no handshake.
+        """
+        if not isinstance(what, PositionMove):
+            return
+        try:
+            self.port.write(CONTROLWORD, 0, _pp_base(what))
+        except DeviceFailure as exc:
+            log.warning("%s: set-point handshake not closed (%s); the next move closes it",
+                        self.port.name, exc)
+
+
+def _accepted(what: Move, sw: int) -> bool:
+    if isinstance(what, PositionMove):
+        return bool(sw & Sw.OP_MODE_12)  # set-point acknowledge
+    # Homing: in progress (13/12/10 = 0/0/0), attained (x/1/x) or error (1/x/x).
+    return bool(sw & (Sw.OP_MODE_12 | Sw.OP_MODE_13)) or not sw & Sw.TARGET_REACHED
+
+
+__all__ = ["HomingMove", "Move", "MoveStarts", "OutcomeUnknown", "PositionMove", "VelocityMove"]

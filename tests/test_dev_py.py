@@ -1,0 +1,96 @@
+"""``python3 dev.py start``: the simulator unless an axis table is given; Ctrl-C and
+SIGTERM reach the bridge once and its clean exit is awaited."""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import List
+
+import pytest
+
+from tcp_bridge.cli import send
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def load_dev() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("dev", ROOT / "dev.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+dev = load_dev()
+
+
+@pytest.mark.parametrize("args, simulate", [
+    ([], True),
+    (["--axes", "5"], True),
+    (["--config", "axes.toml"], False),
+    (["--config=axes.toml", "--port", "0"], False),
+    (["--simulate", "--axes", "2"], False),  # given once by the user, not twice
+])
+def test_simulate_only_without_a_source_of_axes(args: List[str], simulate: bool) -> None:
+    cmd = dev.bridge_command(args)
+    assert Path(cmd[0]).name == "tcp-bridge" and cmd[1] == "serve"
+    added = cmd[2:len(cmd) - len(args)]
+    assert cmd[len(cmd) - len(args):] == args  # the user's arguments, unchanged, last
+    assert added == (["--simulate"] if simulate else [])
+
+
+def require_ready_venv() -> None:
+    stamp = ROOT / ".venv" / ".installed"
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if not stamp.exists() or stamp.read_text() != want:
+        pytest.skip("dev.py would (re)install .venv first; run the suite through dev.py test")
+
+
+def start(*args: str) -> subprocess.Popen[str]:
+    require_ready_venv()
+    return subprocess.Popen([sys.executable, str(ROOT / "dev.py"), "start", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_reaches_the_bridge_once_and_its_clean_exit_is_awaited(signum: int) -> None:
+    proc = start("--port", "0", "--maintenance-port", "-1", "--axes", "2")
+    try:
+        line = proc.stdout.readline()  # type: ignore[union-attr]
+        assert "listening on" in line, line
+        address = line.split("listening on ")[1].split(" ")[0]
+        assert send(address, ["2R99"], timeout=10)[0].status.name == "ACK"
+        proc.send_signal(signum)  # to dev.py only: the bridge is in its own process group
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "shutting down" in out  # the bridge's clean path ...
+    assert "second signal; exiting now" not in out + err  # ... after exactly one signal
+    host, port = address.rsplit(":", 1)
+    with pytest.raises(OSError):  # and it is gone, not orphaned
+        socket.create_connection((host, int(port)), timeout=5).close()
+
+
+def test_start_with_config_tries_the_configured_buses() -> None:
+    proc = start("--config", "tcp_bridge/example_axes.toml", "--port", "0",
+                 "--maintenance-port", "-1")
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    # No CAN adapter and no EPOS4 on /dev/ttyACM0 here: the bridge names the bus
+    # it could not open (example_axes.toml: can1 socketcan can0, can2 epos).
+    assert proc.returncode == 2, out + err
+    assert err.startswith("tcp-bridge: bus can")
+    assert "listening" not in out

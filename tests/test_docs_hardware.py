@@ -1,0 +1,52 @@
+"""docs/hardware.md: linked from the README, its axis tables load, no world-writable udev rule."""
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+from epos_link.transports.usb import PERMISSION_HELP, UDEV_RULE, UDEV_RULES_FILE
+from tcp_bridge.axes import AxisTable
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "hardware.md"
+
+
+def blocks(language: str) -> list[str]:
+    return re.findall(rf"```{language}\n(.*?)```", DOC.read_text(), re.S)
+
+
+def test_the_readme_links_the_hardware_guide() -> None:
+    assert "](docs/hardware.md)" in (ROOT / "README.md").read_text()
+
+
+@pytest.mark.parametrize("text", blocks("toml"), ids=lambda t: t.split("\n")[0])
+def test_every_axis_table_of_the_guide_loads(text: str) -> None:
+    data = tomllib.loads(text)
+    if "axis" not in data:  # a [bus.*] fragment: give it one axis to be a table
+        data["axis"] = [{"node_id": 1}]
+    table = AxisTable.from_mapping(data)
+    assert table.buses
+
+
+@pytest.mark.parametrize("path", ["README.md", "docs/hardware.md",
+                                  "epos_link/transports/usb.py", "epos_link/tools/ports.py"])
+def test_no_world_writable_udev_rule(path: str) -> None:
+    text = (ROOT / path).read_text()
+    assert not re.search(r'MODE\s*=\s*"0?666"', text)
+    assert "99-epos4" not in text
+
+
+def test_the_uaccess_rule_sorts_before_seat_late() -> None:
+    """systemd's 73-seat-late.rules applies the uaccess tag: a later file is too late."""
+    assert 'TAG+="uaccess"' in UDEV_RULE and UDEV_RULE in PERMISSION_HELP
+    name = Path(UDEV_RULES_FILE).name
+    assert name < "73-seat-late.rules"
+    assert UDEV_RULE in DOC.read_text() and name in DOC.read_text()

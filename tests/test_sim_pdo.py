@@ -1,0 +1,159 @@
+"""The simulated drives' transmit PDOs (epos_link.simulator.pdo), through canopen's own PDO API.
+
+A canopen ``RemoteNode`` on the simulator's virtual bus maps TPDOs the way the
+bridge does (``node.tpdo[n].read()``, ``add_variable``, ``save()``), starts the
+node and watches what arrives. Time bounds are generous (seconds), never tight.
+"""
+from __future__ import annotations
+
+import threading
+from typing import Iterator, List, Tuple
+
+import canopen
+import pytest
+from canopen.sdo import SdoAbortedError
+
+from epos_link.simulator.core import Epos4Simulator
+from epos_link.simulator.od import EDS_PATH
+from epos_link.simulator.pdo import ABORT_NOT_MAPPABLE, ABORT_UNSUPPORTED
+
+NODE = 2
+
+
+@pytest.fixture
+def bus() -> Iterator[Tuple[Epos4Simulator, canopen.RemoteNode]]:
+    sim = Epos4Simulator(1, [NODE])
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=sim.channel, receive_own_messages=False)
+    node = canopen.RemoteNode(NODE, str(EDS_PATH))
+    node.sdo.RESPONSE_TIMEOUT = 1.0
+    net.add_node(node)
+    try:
+        yield sim, node
+    finally:
+        net.disconnect()
+        sim.close()
+
+
+def map_status(node: canopen.RemoteNode, *, event_ms: int = 20) -> None:
+    """TPDO1: statusword + position; TPDO2: velocity + digital inputs."""
+    for n, objects in ((1, (0x6041, 0x6064)), (2, (0x606C, 0x60FD))):
+        tpdo = node.tpdo[n]
+        tpdo.read()
+        tpdo.clear()
+        for index in objects:
+            tpdo.add_variable(index)
+        tpdo.trans_type = 255
+        tpdo.event_timer = event_ms
+        tpdo.inhibit_time = 0
+        tpdo.enabled = True
+        tpdo.save()
+
+
+def collect(node: canopen.RemoteNode, n: int, count: int, timeout: float = 5.0) -> List[bytes]:
+    got: List[bytes] = []
+    done = threading.Event()
+
+    def on_pdo(pdo: canopen.pdo.PdoMap) -> None:
+        got.append(bytes(pdo.data))
+        if len(got) >= count:
+            done.set()
+    node.tpdo[n].add_callback(on_pdo)
+    assert done.wait(timeout), f"only {len(got)} PDOs of TPDO{n} in {timeout} s"
+    return got
+
+
+def test_mapped_tpdos_carry_the_drive_values_in_operational(bus) -> None:  # type: ignore[no-untyped-def]
+    sim, node = bus
+    map_status(node)
+    node.nmt.state = "OPERATIONAL"
+    status = collect(node, 1, 2)  # on entering Operational, then every event timer period
+    sw = int.from_bytes(status[-1][:2], "little")
+    assert len(status[-1]) == 6
+    assert sw & 0x6F == 0x40  # switch on disabled (CiA 402), bit 9 remote set below
+    assert sw & 0x200  # Operational: remote (guide Table 3-13)
+    drive = sim.drive(NODE)
+    assert node.tpdo[1]["Position actual value"].raw == drive.position
+    collect(node, 2, 1)
+    assert node.tpdo[2]["Velocity actual value"].raw == 0
+    # canopen decodes the PDO through the same EDS
+    assert node.tpdo[1]["Statusword"].raw == sw
+
+
+def test_a_change_is_sent_without_waiting_for_the_event_timer(bus) -> None:  # type: ignore[no-untyped-def]
+    sim, node = bus
+    map_status(node, event_ms=0)  # no event timer: only changes are sent
+    node.nmt.state = "OPERATIONAL"
+    collect(node, 1, 1)  # the one sent on entering Operational
+    seen: List[int] = []
+    changed = threading.Event()
+
+    def on_pdo(pdo: canopen.pdo.PdoMap) -> None:
+        seen.append(int.from_bytes(bytes(pdo.data[:2]), "little"))
+        if seen[-1] & 0x6F == 0x21:
+            changed.set()
+    node.tpdo[1].add_callback(on_pdo)
+    node.sdo[0x6040].raw = 0x06  # shutdown: ready to switch on
+    assert changed.wait(5.0)
+
+
+def test_no_pdo_outside_operational(bus) -> None:  # type: ignore[no-untyped-def]
+    sim, node = bus
+    map_status(node)
+    node.nmt.state = "OPERATIONAL"
+    collect(node, 1, 1)
+    node.nmt.state = "PRE-OPERATIONAL"
+    import time
+    time.sleep(0.1)  # let a PDO already in flight arrive
+    before = node.tpdo[1].timestamp
+    assert node.tpdo[1].wait_for_reception(0.3) is None  # 15 event periods: none came
+    assert node.tpdo[1].timestamp == before
+
+
+def test_mapping_rules(bus) -> None:  # type: ignore[no-untyped-def]
+    sim, node = bus
+    node.tpdo[1].read()
+    # A valid PDO's mapping cannot be changed (CiA 301 7.5.2.38: destroy it first).
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1A00][0].raw = 0
+    assert err.value.code == ABORT_UNSUPPORTED
+    node.sdo[0x1800][1].raw = 0x80000182
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1A00][2].raw = 0x60640020  # sub 0 is still 1
+    assert err.value.code == ABORT_UNSUPPORTED
+    node.sdo[0x1A00][0].raw = 0
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1A00][1].raw = 0x60650020  # 6065h is not mappable (EDS PDOMapping=0)
+    assert err.value.code == ABORT_NOT_MAPPABLE
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1A00][1].raw = 0x60640010  # 6064h is 32 bits, not 16
+    assert err.value.code == ABORT_NOT_MAPPABLE
+    for sub, entry in enumerate((0x60640020, 0x606C0020, 0x60410010), start=1):
+        node.sdo[0x1A00][sub].raw = entry
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1A00][0].raw = 3  # 80 bits do not fit one CAN frame
+    assert err.value.code == 0x06040042
+    node.sdo[0x1A00][0].raw = 2
+    # a valid PDO keeps its identifier
+    node.sdo[0x1800][1].raw = 0x182
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1800][1].raw = 0x183
+    assert err.value.code == 0x06090030
+
+
+def test_a_drive_that_refuses_the_mapping(bus) -> None:  # type: ignore[no-untyped-def]
+    sim, node = bus
+    sim.drives[NODE].tpdo.refuse_mapping = True
+    with pytest.raises(SdoAbortedError) as err:
+        map_status(node)
+    assert err.value.code == ABORT_NOT_MAPPABLE
+
+
+def test_a_reset_node_brings_back_the_default_mapping(bus) -> None:  # type: ignore[no-untyped-def]
+    sim, node = bus
+    map_status(node)
+    sim.power_cycle(NODE)
+    node.tpdo[1].read()
+    assert [v.index for v in node.tpdo[1].map] == [0x6041]  # the EDS default again
+    node.tpdo[2].read()
+    assert not node.tpdo[2].enabled
