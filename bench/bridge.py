@@ -210,10 +210,10 @@ def bench_instant(seconds: float, runs: int) -> None:
         served.close()
 
 
-def start_simulator(baud: int) -> Tuple[subprocess.Popen, str]:
+def start_simulator(baud: int, drives: str = "2") -> Tuple[subprocess.Popen, str]:
     """``epos-link sim --pty --baud`` in its own process; (process, pty path)."""
     proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "sim", "--pty", "--baud",
-                             str(baud), "--drives", "2"], stdout=subprocess.PIPE, text=True)
+                             str(baud), "--drives", drives], stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     line = proc.stdout.readline().strip()
     if not line.startswith("listening on "):
@@ -223,12 +223,23 @@ def start_simulator(baud: int) -> Tuple[subprocess.Popen, str]:
 
 
 def bench_sim(seconds: float, runs: int, baud: int) -> None:
-    print(f"simulated EPOS4 (own process) over a pty at {baud} baud, R10 (one SDO upload); "
-          "goal: the bridge adds < 5%")
-    sim, path = start_simulator(baud)
+    """R10 through the epos backend against the wire (issue 10).
+
+    Eight axes (the EPOS4 and seven drives behind its gateway), each client
+    polling its own axis: no two queued requests are alike, so nothing is
+    shared (tcp_bridge/shared_reads.py) and every command is its own
+    ReadObject; with 8 clients the bus is never idle, which is what the wire
+    limit is about. One client waits for each reply, so its rate also pays
+    the TCP round trip.
+    """
+    wire = wire_rate(baud)
+    print(f"simulated EPOS4 (own process) over a pty at {baud} baud, R10 = one ReadObject; "
+          f"wire limit {wire:.0f} ReadObject/s (8N1); goals: >= {GOAL_WIRE:g}% of the wire "
+          f"with the bus never idle, the bridge adds < {GOAL_ADDED:g}%")
+    sim, path = start_simulator(baud, drives=",".join(map(str, range(2, 9))))
     engine = build_engine(table({"backend": "epos", "url": path, "baudrate": baud,
-                                 "gateway_node_id": 1}, 2))
-    node = engine.axes[1].port.node  # type: ignore[union-attr]
+                                 "gateway_node_id": 1}, 8))
+    node = engine.axes[2].port.node  # type: ignore[union-attr]
     served = Served(engine)
     try:
         def direct() -> Tuple[float, float, float]:
@@ -242,28 +253,17 @@ def bench_sim(seconds: float, runs: int, baud: int) -> None:
 
         base = median_run(direct, runs)
         row("backend alone (node.sdo.upload)", *base)
-        wire = wire_rate(baud)
-        print(f"  {'':<34} wire limit: {wire:.0f} ReadObject/s ({baud} baud, 8N1)")
+        print(f"  {'':<34} {100 * base[0] / wire:.1f}% of the wire-limited rate")
         for clients in (1, 8):
-            per_client = [[b"%dR10\r" % (1 + c % 2)] for c in range(clients)]
+            per_client = [[b"%dR10\r" % (1 + c)] for c in range(clients)]
             rate, p50, p99 = median_run(lambda: load(served.port, per_client, seconds), runs)
             row(f"bridge, {clients} client{'s' if clients > 1 else ''}", rate, p50, p99)
-            # time per command: 1 / rate; the bridge's share of it
-            added = 100 * (base[0] / rate - 1)
-            if clients == 1:
-                print(f"  {'':<34} bridge adds {100 * (p50 - base[1]) / base[1]:+.1f}% "
-                      f"to the p50, {added:+.1f}% to the time per command")
-                print(f"  {'':<34} R10 through the bridge: {100 * rate / wire:.1f}% of the "
-                      "wire-limited rate")
-                verdict((f">= {GOAL_WIRE:g}% of the wire", 100 * rate / wire >= GOAL_WIRE))
-            else:
-                print(f"  {'':<34} bridge adds {added:+.1f}% to the time per command "
-                      "(one bus: the 8 clients' SDO transfers are serialised)")
-            verdict((f"adds < {GOAL_ADDED:g}%", added < GOAL_ADDED))
+            added = 100 * (base[0] / rate - 1)  # time per command against the backend's
+            print(f"  {'':<34} {100 * rate / wire:.1f}% of the wire-limited rate; the bridge "
+                  f"adds {added:+.1f}% to the time per command")
             if clients > 1:
-                print(f"  {'':<34} R10 through the bridge: {100 * rate / wire:.1f}% of the "
-                      "wire-limited rate (the bus never idle)")
-                verdict((f">= {GOAL_WIRE:g}% of the wire", 100 * rate / wire >= GOAL_WIRE))
+                verdict((f">= {GOAL_WIRE:g}% of the wire", 100 * rate / wire >= GOAL_WIRE),
+                        (f"adds < {GOAL_ADDED:g}%", added < GOAL_ADDED))
     finally:
         served.close()
         sim.terminate()

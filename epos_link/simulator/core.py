@@ -78,6 +78,7 @@ class SimulatedDrive:
         self.local_node: Optional[canopen.LocalNode] = None
         self.network: Optional[canopen.Network] = None  # where boot-up messages and PDOs go
         self.tpdo = TransmitPdos(self.store)
+        self.on_operational: Callable[[], None] = lambda: None  # wakes the PDO ticker
         # The serial thread and the CAN notifier thread both reach this store.
         self.lock = threading.RLock()
         for name in ("read", "write"):
@@ -111,8 +112,7 @@ class SimulatedDrive:
         with self.lock:
             network = self.network
             if self.nmt_state is not NmtState.OPERATIONAL or network is None:
-                self.tpdo.reset()
-                return
+                return  # the PDOs were reset when it left Operational (_set_state)
             if not self.tpdo.wants_sample(now):
                 return  # at rest and untouched (epos_link.simulator.pdo, QUIET)
             self.drive.sync()
@@ -155,10 +155,19 @@ class SimulatedDrive:
             except can.CanError:  # the simulator was closed meanwhile: nobody to tell
                 pass
 
+    @property
+    def transmitting(self) -> bool:
+        """Whether it may send PDOs now (Operational); read without the lock by the ticker."""
+        return self.nmt_state is NmtState.OPERATIONAL
+
     def _set_state(self, state: NmtState) -> None:
         self.nmt_state = state
         self.drive.remote = state is NmtState.OPERATIONAL  # statusword bit 9
-        self.tpdo.touch()
+        if state is NmtState.OPERATIONAL:
+            self.tpdo.touch()
+            self.on_operational()
+        else:
+            self.tpdo.reset()  # nothing is sent outside Operational
 
 
 class Epos4Simulator:
@@ -198,6 +207,8 @@ class Epos4Simulator:
         self._drive_net.subscribe(0, self._on_nmt)
         self._pdo: Optional[PdoTicker] = PdoTicker(lambda: tuple(self.drives.values()),
                                                    self.clock, tick=pdo_tick)
+        for sim in self.drives.values():
+            sim.on_operational = self._pdo.wake
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,

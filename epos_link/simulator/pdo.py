@@ -64,6 +64,7 @@ EVENT_DRIVEN: Final = frozenset({254, 255})
 TICK: Final = 0.002  # seconds between samples (chosen, see the module docstring)
 MAX_ENTRIES: Final = 8
 QUIET: Final = 0.01  # seconds between samples of a drive at rest (chosen, see above)
+IDLE_WAIT: Final = 0.5  # seconds the ticker sleeps while no drive is Operational (a bound only)
 
 
 @dataclass
@@ -205,7 +206,12 @@ class TransmitPdos:
 
 class PdoTicker:
     """One thread per simulator: every ``tick`` seconds, each Operational drive sends
-    what is due (:meth:`TransmitPdos.due`) on the virtual bus."""
+    what is due (:meth:`TransmitPdos.due`) on the virtual bus.
+
+    While no drive is Operational (``transmitting``), the thread sleeps until
+    :meth:`wake` (a drive entered Operational): a ticking thread would take the
+    interpreter from the serial link's thread 500 times a second for nothing.
+    """
 
     def __init__(self, drives: Callable[[], Iterable[object]], clock: Callable[[], float], *,
                  tick: float = TICK) -> None:
@@ -215,13 +221,24 @@ class PdoTicker:
         self._clock = clock
         self.tick = tick
         self._stop = threading.Event()
+        self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sim-tpdo", daemon=True)
         self._thread.start()
+
+    def wake(self) -> None:
+        """A drive entered Operational: tick again."""
+        self._wake.set()
 
     def _run(self) -> None:
         next_at = time.monotonic()
         while not self._stop.is_set():
-            for drive in list(self._drives()):
+            drives = [d for d in self._drives() if getattr(d, "transmitting", True)]
+            if not drives:
+                self._wake.wait(IDLE_WAIT)
+                self._wake.clear()
+                next_at = time.monotonic()
+                continue
+            for drive in drives:
                 send = getattr(drive, "send_pdos", None)
                 if send is not None:
                     try:
@@ -236,6 +253,7 @@ class PdoTicker:
 
     def close(self) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not threading.current_thread():
             self._thread.join(5)
 
