@@ -43,6 +43,9 @@ from .errors import (DeviceError, EposError, EposTimeoutError, GatewayNotSupport
                      RemoteProtocolError, TransportError)
 
 
+_SIZE_CACHE_LIMIT = 4096
+
+
 class EposSdoClient(SdoBase):
     """canopen's SDO interface, carried by an :class:`EposClient`."""
 
@@ -55,6 +58,9 @@ class EposSdoClient(SdoBase):
         # The node id put in the serial frames: 0 addresses the connected EPOS4
         # itself (guide chapter 5), whatever its CANopen id.
         self.node_id = node_id if link_node is None else link_node
+        # _size() per object: the dictionary's lookup by number costs more than a
+        # status poll's own Python (issue 10, bench/bridge.py).
+        self._sizes: dict[tuple[int, int], Optional[int]] = {}
 
     def _call(self, fn: Callable[[], Any]) -> Any:
         try:
@@ -80,12 +86,15 @@ class EposSdoClient(SdoBase):
         bytes are returned. Describe larger objects in the dictionary (pass the
         device's EDS) to read them whole.
         """
+        key = (index, subindex)
+        if key in self._sizes:
+            return self._sizes[key]
         var = self.od.get_variable(index, subindex)
-        if var is None:
-            return 4
-        if var.fixed_size:
-            return len(var) // 8
-        return None
+        size = 4 if var is None else len(var) // 8 if var.fixed_size else None
+        if len(self._sizes) >= _SIZE_CACHE_LIMIT:
+            self._sizes.clear()
+        self._sizes[key] = size
+        return size
 
     def upload(self, index: int, subindex: int) -> bytes:
         size = self._size(index, subindex)

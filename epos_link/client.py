@@ -82,6 +82,9 @@ DEFAULT_TIMEOUT = 0.5  # guide 2.2.7: RS232/USB frame timeout, 500 ms by default
 DEFAULT_RETRIES = 1
 DEFAULT_SCAN_TIMEOUT = 0.1
 READ_CHUNK = 4096  # one read takes whatever has arrived, up to a few frames
+# The shortest answer frame: DLE STX, op code, length, the 4-byte error code that
+# every answer starts with, CRC (guide 2.2.2 frame, 2.1 answers).
+MIN_ANSWER_FRAME = 10
 _FRAME_CACHE_LIMIT = 4096
 
 # "CRC error": the device got our request damaged; sending it again is right.
@@ -172,6 +175,10 @@ class EposClient:
         self._late_answer_due = False
         self.late_answer_timeout = late_answer_timeout
         self.stats = ClientStats()
+        # Called (on the calling thread) once each request frame has been written:
+        # the answer takes at least the request's wire time, so a caller may use it
+        # (tcp_bridge.workers hands a finished reply to its event loop then).
+        self.on_sent: Optional[Callable[[], None]] = None
         # Encoded ReadObject frames and their names: the hot path encodes nothing.
         self._read_frames: dict[tuple[int, int, int], tuple[bytes, str]] = {}
 
@@ -222,6 +229,8 @@ class EposClient:
         transport.reset_input()
         decoder.reset()
         transport.write(frame)
+        if self.on_sent is not None:
+            self.on_sent()
         deadline = time.monotonic() + timeout
         read, next_frame, feed = transport.read_some, decoder.next_frame, decoder.feed
         heard = False
@@ -242,7 +251,9 @@ class EposClient:
                     raise EposTimeoutError(
                         f"{what or 'request'}: no answer within {timeout:g} s"
                         + (f" ({held} bytes of an incomplete answer)" if held else ""))
-                data = read(READ_CHUNK, left, decoder.wanted)
+                # Before the first byte, an answer's smallest frame: the client may
+                # wait for that many at once (SerialTransport.read_some).
+                data = read(READ_CHUNK, left, decoder.wanted if heard else MIN_ANSWER_FRAME)
                 if data:
                     heard = True
                     feed(data)

@@ -191,6 +191,9 @@ class Engine:
             worker = self._workers.get(getattr(backend, "name", None))  # type: ignore[arg-type]
             if attach is not None and worker is not None:
                 attach(worker.post)
+            sent = getattr(backend, "attach_sent", None)
+            if sent is not None and worker is not None:
+                sent(worker.defer_results())
 
     # -- planning (event loop, no I/O) -------------------------------------------------
 

@@ -346,6 +346,13 @@ def format_read_reply(axis: int, cmd: int, value: Union[int, float, str]) -> byt
 
     The value gets whatever room this header leaves in the 30 bytes.
     """
+    if type(value) is int and 0 <= axis <= 99 and 0 <= cmd <= 99:
+        # The status poll's path (issue 10: it runs between one answer and the next
+        # request on the bus): the bytes Reply would make, without its checks, which
+        # an int and a valid header cannot fail except by length.
+        raw = f"{axis} R {cmd}={value}\x06\r".encode("ascii")
+        if len(raw) <= REPLY_SIZE:
+            return raw.ljust(REPLY_SIZE, b"\x00")
     if not isinstance(value, str):
         room = REPLY_SIZE - len(f"{axis} R {cmd}=") - 2
         value = format_value(value, room)

@@ -64,6 +64,8 @@ class Worker(Protocol):
 
     def idle(self) -> bool: ...
 
+    def flush(self) -> None: ...
+
 
 @dataclass
 class _Group:
@@ -158,6 +160,7 @@ class SharedReads:
     def _run(self, group: _Group, job: Callable[[], Any]) -> Any:
         with self._cond:
             if self.window > 0 and group.expect > 1:
+                self.worker.flush()  # a reply held for this job's request goes out now
                 deadline = self._clock() + self.window
                 while len(group.waiters) < group.expect and not self.worker.queued() \
                         and self._open.get(group.key) is group:

@@ -497,3 +497,18 @@ def test_pure_modules_import_no_io(module: str) -> None:
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             imported.add(node.module.split(".")[0])
     assert not imported & FORBIDDEN
+
+
+@given(axis=st.integers(0, 99), cmd=st.integers(0, 99),
+       value=st.integers() | st.integers(-10**25, 10**25) | st.booleans())
+@settings(max_examples=300)
+def test_an_int_read_reply_is_the_bytes_of_its_reply(axis: int, cmd: int, value: int) -> None:
+    # format_read_reply writes int values without building a Reply (the status
+    # poll's path): the bytes, and the overflow refusal, must be Reply's own.
+    try:
+        expected = Reply(axis, "R", cmd, Status.ACK, str(int(value))).encode()
+    except ReplyOverflow:
+        with pytest.raises(ReplyOverflow):
+            format_read_reply(axis, cmd, value)
+        return
+    assert format_read_reply(axis, cmd, value) == expected

@@ -35,6 +35,9 @@ class StepWorker:
     def idle(self) -> bool:
         return not self.jobs
 
+    def flush(self) -> None:
+        """Nothing held: step() hands each result over as its job ends."""
+
     def step(self) -> bool:
         """Run the oldest queued job (the worker's turn); False if there is none."""
         while self.jobs:

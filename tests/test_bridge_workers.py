@@ -114,3 +114,68 @@ def test_maintenance_runs_between_jobs_and_while_idle_and_survives_a_bug() -> No
     first_job = order.index("job")
     assert order[first_job - 1] == "maintenance"  # before each job
     assert order[order.index("job", first_job + 1) - 1] == "maintenance"
+
+
+# Replies after the next request (defer_results): on a serial link the result of a
+# job is handed to the event loop once the next queued job's request is on the wire.
+
+
+def test_a_result_waits_for_the_next_jobs_request_while_another_job_is_queued() -> None:
+    worker = BusWorker("ser1")
+    sent = worker.defer_results()
+    both_queued = threading.Event()
+    first_out = threading.Event()
+    seen: List[str] = []
+
+    def second() -> str:
+        # Without deferral first's result would already be on its way to the loop.
+        seen.append("out before send" if first_out.wait(0.3) else "held")
+        sent()  # this job's request is on the wire
+        seen.append("out after send" if first_out.wait(5) else "still held")
+        return "second"
+
+    async def scenario() -> List[object]:
+        first = worker.submit(lambda: both_queued.wait(5) and "first")
+        first.add_done_callback(lambda f: first_out.set())
+        later = worker.submit(second)
+        both_queued.set()
+        return list(await asyncio.gather(first, later))
+
+    assert asyncio.run(scenario()) == ["first", "second"]
+    worker.close()
+    assert seen == ["held", "out after send"]
+
+
+def test_a_job_that_sends_nothing_hands_over_both_results_even_with_more_queued() -> None:
+    worker = BusWorker("ser1")
+    worker.defer_results()
+    all_queued = threading.Event()
+    out = {"first": threading.Event(), "second": threading.Event()}
+
+    def third() -> bool:
+        # first was held for second's request; second sent none: both are out now.
+        return out["first"].wait(5) and out["second"].wait(5)
+
+    async def scenario() -> List[object]:
+        first = worker.submit(lambda: all_queued.wait(5) and "first")
+        second = worker.submit(lambda: "second")  # answered without the bus
+        last = worker.submit(third)
+        for name, future in (("first", first), ("second", second)):
+            future.add_done_callback(lambda f, e=out[name]: e.set())
+        all_queued.set()
+        return list(await asyncio.gather(first, second, last))
+
+    assert asyncio.run(scenario()) == ["first", "second", True]
+    worker.close()
+
+
+def test_with_nothing_queued_a_result_goes_out_at_once_and_the_hook_is_the_workers_own() -> None:
+    worker = BusWorker("ser1")
+    sent = worker.defer_results()
+
+    async def scenario() -> object:
+        sent()  # another thread (Engine.execute_sync) using the link: a no-op
+        return await asyncio.wait_for(worker.submit(lambda: "alone"), 5)
+
+    assert asyncio.run(scenario()) == "alone"
+    worker.close()

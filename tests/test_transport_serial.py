@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import pytest
@@ -139,14 +140,61 @@ def test_client_over_pty_times_out_on_a_silent_device() -> None:
         client.close()
 
 
-def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire() -> None:
-    # At 115200 baud a byte takes 10 / 115200 s (8N1, guide 2.2.6). With 9 bytes
-    # wanted and 1 already received, 7 more are certainly still on the wire.
+def test_read_some_wakes_once_when_the_wanted_bytes_are_in() -> None:
+    # VMIN = wanted (VTIME 0): the port turns readable only once all of them are
+    # in, so an answer sent byte by byte is read in one piece, by one wake-up.
     import pty as pty_module
 
     master, slave = pty_module.openpty()
     try:
         link = open_serial(os.ttyname(slave), baudrate=115200)
+
+        def dribble() -> None:
+            for b in b"\x90\x02\x00\x04\x00":
+                os.write(master, bytes([b]))
+                time.sleep(0.02)
+
+        writer = threading.Thread(target=dribble)
+        writer.start()
+        assert link.read_some(16, 5.0, wanted=5) == b"\x90\x02\x00\x04\x00"
+        writer.join()
+        # A plain read() takes the first byte that comes, as before.
+        os.write(master, b"\x01\x02")
+        assert link.read(16, 5.0)[:1] == b"\x01"
+        link.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_read_some_returns_what_came_at_the_deadline() -> None:
+    # Fewer bytes than wanted (a lost byte, a short answer): at the deadline the
+    # reader gets what is there, so the client can say what it heard.
+    import pty as pty_module
+
+    master, slave = pty_module.openpty()
+    try:
+        link = open_serial(os.ttyname(slave), baudrate=115200)
+        os.write(master, b"\x90\x02\x00")
+        time.sleep(0.05)
+        assert link.read_some(16, 0.1, wanted=9) == b"\x90\x02\x00"
+        assert link.read_some(16, 0.05, wanted=9) == b""  # nothing more: nothing
+        link.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire_without_vmin() -> None:
+    # Where VMIN cannot be set, the reader sleeps instead. At 115200 baud a byte
+    # takes 10 / 115200 s (8N1, guide 2.2.6): with 9 bytes wanted and 1 already
+    # received, 7 more are certainly still on the wire.
+    import pty as pty_module
+
+    master, slave = pty_module.openpty()
+    try:
+        link = open_serial(os.ttyname(slave), baudrate=115200)
+        link._vmin = 0  # what open() finds on a port that is not a terminal
         pauses: list = []
         link._sleep = pauses.append
         os.write(master, b"\x90\x02")

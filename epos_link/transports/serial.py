@@ -9,14 +9,23 @@ change it. URL handlers that take options in the query (``rfc2217://``,
 
 Reading: the transport contract is "return as soon as any byte is there, or
 b'' after the timeout". When the client knows that a frame still needs N bytes
-(:meth:`SerialTransport.read_some`), a POSIX port first sleeps for the wire
-time of the bytes not yet received, minus one: at 115200 baud a byte takes
-87 us, and waking up for each of an answer's 14 bytes cost the host about
-0.3 ms of CPU per request, which a loaded machine turns into latency. pyserial's ``read(n)`` waits for all ``n`` bytes, so
-three readers exist, picked by the port's exact class:
+(:meth:`SerialTransport.read_some`), a POSIX port lets the kernel wait for
+them: the terminal's VMIN is set to N (VTIME 0), and in that mode the line
+discipline reports the port readable only once N bytes are in (Linux n_tty:
+``input_available_p``; POSIX "MIN > 0, TIME = 0"). So an answer wakes the
+reader once, when its last byte arrives, instead of once per byte (at 115200
+baud a byte takes 87 us; each wake-up costs CPU, and in the bridge it also
+costs a hand-over of Python's interpreter lock, on the path between one
+answer and the next request). The client never states more than a frame
+still needs (:attr:`FrameDecoder.wanted`), and at the deadline whatever has
+arrived is returned, so a short or broken answer is seen as before. Where
+VMIN cannot be set (not a terminal), the reader sleeps for the wire time of
+the bytes still due instead. pyserial's ``read(n)`` waits for all ``n`` bytes,
+so three readers exist, picked by the port's exact class:
 
 * a POSIX port (``serial.Serial``): ``select`` on its file descriptor, then one
-  ``os.read`` of whatever is there. No termios call on the hot path.
+  ``os.read`` of whatever is there. A termios call only when the number of
+  bytes waited for changes (a steady stream of one request keeps it).
 * ``socket://``: ``select`` and one ``recv``; pyserial's ``in_waiting`` on a
   socket says only 0 or 1, which would cost a system call per byte.
 * anything else (``spy://`` logs inside ``read``, ``loop://``, ``rfc2217://``,
@@ -41,6 +50,10 @@ from .base import Transport
 if os.name == "posix":
     import fcntl
     import termios
+
+    _TERMIOS_ERROR: type = termios.error
+else:
+    _TERMIOS_ERROR = OSError
 
 BITS_PER_BYTE = 10  # 8N1 (guide 2.2.6)
 DEFAULT_BAUDRATE = 115200  # guide 2.3.2 / factory setting of the EPOS4 RS232 interface
@@ -97,6 +110,7 @@ class SerialTransport(Transport):
         self._sleep: Callable[[float], None] = time.sleep
         self._fd = -1
         self._sock: Any = None
+        self._vmin = 1  # the terminal's VMIN as we last set it; 0: it cannot be set
         self.open()
 
     # --- life cycle -------------------------------------------------------
@@ -120,6 +134,7 @@ class SerialTransport(Transport):
         if os.name == "posix" and cls is serial.Serial and getattr(port, "fd", None) is not None:
             self._fd = port.fd
             self._read = self._read_fd
+            self._vmin = 1 if _set_vmin(port.fd, 1) else 0  # pyserial's own setting is 1
         elif cls.__module__.endswith("protocol_socket") and getattr(port, "_socket", None):
             self._sock = port._socket
             self._read = self._read_socket
@@ -160,6 +175,9 @@ class SerialTransport(Transport):
         port = self._port
         if port is None:
             raise self._closed()
+        if self._fd >= 0:
+            self._write_fd(data)
+            return
         try:
             port.write(data)
         except (serial.SerialException, OSError) as exc:
@@ -168,11 +186,18 @@ class SerialTransport(Transport):
     def read(self, max_bytes: int, timeout: float) -> bytes:
         if self._port is None:
             raise self._closed()
+        if self._vmin > 1:
+            self._wait_for(1)
         return self._read(max_bytes, timeout if timeout > 0 else 0.0)
 
     def read_some(self, max_bytes: int, timeout: float, wanted: int = 1) -> bytes:
-        """:meth:`read`; on a POSIX port, first sleep while the ``wanted`` bytes are
-        still on the wire (they cannot arrive faster than the baud rate)."""
+        """:meth:`read`, but on a POSIX port wake up only once ``wanted`` bytes are
+        in, or at the deadline with whatever came (module docstring)."""
+        if self._vmin and self._fd >= 0:
+            if self._port is None:
+                raise self._closed()
+            self._wait_for(wanted)
+            return self._read_fd(max_bytes, timeout if timeout > 0 else 0.0)
         if wanted > 2 and self._fd >= 0 and timeout > 0:
             try:
                 waiting = struct.unpack("i", fcntl.ioctl(self._fd, termios.FIONREAD,
@@ -186,20 +211,55 @@ class SerialTransport(Transport):
                 timeout -= pause
         return self.read(max_bytes, timeout)
 
+    def _wait_for(self, wanted: int) -> None:
+        """Set the terminal's VMIN to ``wanted`` (at most 255, the field's range)."""
+        vmin = max(1, min(wanted, 255))
+        if vmin != self._vmin:
+            self._vmin = vmin if _set_vmin(self._fd, vmin) else 0
+
     def reset_input(self) -> None:
         port = self._port
         if port is None:
             raise self._closed()
         try:
+            if self._fd >= 0:
+                termios.tcflush(self._fd, termios.TCIFLUSH)  # what pyserial does, directly
+                return
             port.reset_input_buffer()
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, _TERMIOS_ERROR) as exc:
             raise TransportError(f"flushing {self.url} failed: {exc}") from exc
+
+    def _write_fd(self, data: bytes) -> None:
+        """pyserial's write, without its select after a write that took everything
+        (a system call per request, on the path from one answer to the next request)."""
+        fd, view = self._fd, memoryview(data)
+        deadline: Optional[float] = None
+        try:
+            while True:
+                try:
+                    view = view[os.write(fd, view):]
+                except OSError as exc:
+                    if exc.errno not in _RETRY_ERRNOS:
+                        raise
+                if not view:
+                    return
+                if deadline is None:
+                    deadline = time.monotonic() + WRITE_TIMEOUT
+                left = deadline - time.monotonic()
+                if left <= 0 or not select.select((), (fd,), (), left)[1]:
+                    raise TransportError(f"write to {self.url} failed: timed out after "
+                                         f"{WRITE_TIMEOUT:g} s (the port takes no data)")
+        except OSError as exc:
+            raise TransportError(f"write to {self.url} failed: {exc}") from exc
 
     def _read_fd(self, max_bytes: int, timeout: float) -> bytes:
         fd = self._fd
         try:
             if not select.select((fd,), (), (), timeout)[0]:
-                return b""
+                if self._vmin <= 1:
+                    return b""
+                # The deadline, with fewer than VMIN bytes in: hand over what came
+                # (the fd is non-blocking: nothing there is EAGAIN, i.e. b"").
             data = os.read(fd, max_bytes)
         except OSError as exc:
             if exc.errno in _RETRY_ERRNOS:
@@ -247,6 +307,21 @@ class SerialTransport(Transport):
                     return b""
         except (serial.SerialException, OSError) as exc:
             raise TransportError(f"read from {self.url} failed: {exc}") from exc
+
+
+def _set_vmin(fd: int, vmin: int) -> bool:
+    """VMIN = ``vmin``, VTIME = 0 on a terminal; False where that cannot be done."""
+    if os.name != "posix":
+        return False
+    try:
+        attrs = termios.tcgetattr(fd)
+        cc = attrs[6]
+        if cc[termios.VMIN] != vmin or cc[termios.VTIME] != 0:
+            cc[termios.VMIN], cc[termios.VTIME] = vmin, 0
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+    except (_TERMIOS_ERROR, OSError):
+        return False
+    return True
 
 
 def open_serial(url: str, *, baudrate: Optional[int] = None, **options: Any) -> SerialTransport:

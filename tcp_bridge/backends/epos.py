@@ -15,7 +15,7 @@ node from ``epos_link.connect_node`` with canopen's ``SdoBase`` interface.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Callable, Dict, Optional, Sequence
 
 from ..axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import object_dictionary
@@ -32,6 +32,7 @@ class EposBackend:
                  client: Optional[Any] = None) -> None:
         from epos_link.client import EposClient
 
+        self.name = bus.name
         options: Dict[str, Any] = dict(bus.options)
         self.eds = options.pop("eds", "none")
         gateway = options.pop("gateway_node_id", axes[0].node_id if axes else None)
@@ -56,6 +57,11 @@ class EposBackend:
             node = connect_node(self.client, node_id, object_dictionary(self.eds, node_id))
             self.nodes[node_id] = node
         return node
+
+    def attach_sent(self, hook: Callable[[], None]) -> None:
+        """Call ``hook`` once each request is on the wire (tcp_bridge.workers:
+        a reply is handed over while the link carries the next request)."""
+        self.client.on_sent = hook
 
     def probe(self) -> None:
         """Does the EPOS4 itself answer? (Fail-fast buses, :mod:`tcp_bridge.failfast`.)
