@@ -18,7 +18,9 @@ clients do), so the clients do not share the bridge's interpreter lock.
    the bridge adds under 5% to the backend's time per command. And R10
    through the bridge against the wire-limited rate: one ReadObject and its
    answer, 10 bits a byte at the baud rate, as many per second as the wire
-   carries. Goal: at least 90% of it (one client; issue 10).
+   carries. Goal: at least 90% of it with 8 clients on 8 axes, so that the bus
+   is never idle (issue 10); one client waits for each reply, so its rate also
+   pays the TCP round trip between two processes.
 
 3. Status polling (issue 14): 8 clients polling R10 and R12, with for each row
    commands/s, p50, p99 and SDO transfers per command (counted at each node's
