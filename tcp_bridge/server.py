@@ -183,7 +183,7 @@ class BridgeServer:
             try:
                 if left is not None and left <= 0:
                     raise asyncio.TimeoutError
-                data = await asyncio.wait_for(reader.read(READ_SIZE), left)
+                data = await _read_within(reader, left)
             except asyncio.TimeoutError:
                 log.info("client %s sent no request for %g s; closing", conn.peer,
                          self.options.idle_timeout)
@@ -270,3 +270,34 @@ class BridgeServer:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
+
+
+async def _read_within(reader: asyncio.StreamReader, left: Optional[float]) -> bytes:
+    """``reader.read(READ_SIZE)``, or asyncio.TimeoutError after ``left`` seconds.
+
+    ``asyncio.wait_for`` runs the read in a Task of its own (Python 3.10, 3.11), a
+    cost paid on every request; a timer that cancels the connection's own task
+    costs one handle, which is what ``asyncio.timeout()`` (3.11) does. A
+    cancellation from elsewhere (shutdown, eviction) stays a cancellation.
+    """
+    if left is None:
+        return await reader.read(READ_SIZE)
+    task = asyncio.current_task()
+    assert task is not None
+    expired = False
+
+    def expire() -> None:
+        nonlocal expired
+        expired = True
+        task.cancel()
+
+    timer = asyncio.get_running_loop().call_later(left, expire)
+    try:
+        return await reader.read(READ_SIZE)
+    except asyncio.CancelledError:
+        uncancel = getattr(task, "uncancel", None)  # 3.11+: count our own cancel off
+        if expired and (uncancel is None or uncancel() == 0):
+            raise asyncio.TimeoutError from None
+        raise
+    finally:
+        timer.cancel()

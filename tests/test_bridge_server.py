@@ -625,3 +625,48 @@ def test_cli_second_signal_exits_at_once(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert '"22": -1' in (tmp_path / "state.json").read_text()  # still persisted
+
+
+# _read_within: the idle timeout of a connection's read, without a Task per read.
+
+
+def test_read_within_returns_data_and_leaves_no_cancellation_behind() -> None:
+    from tcp_bridge.server import _read_within
+
+    async def scenario() -> bytes:
+        reader = asyncio.StreamReader()
+        reader.feed_data(b"1R10\r")
+        data = await _read_within(reader, 0.05)
+        await asyncio.sleep(0.2)  # past the deadline: the timer must be gone
+        return data
+
+    assert asyncio.run(scenario()) == b"1R10\r"
+
+
+def test_read_within_times_out_and_the_task_goes_on() -> None:
+    from tcp_bridge.server import _read_within
+
+    async def scenario() -> str:
+        reader = asyncio.StreamReader()
+        with pytest.raises(asyncio.TimeoutError):
+            await _read_within(reader, 0.01)
+        await asyncio.sleep(0)  # not cancelled any more
+        task = asyncio.current_task()
+        assert task is not None and getattr(task, "cancelling", lambda: 0)() == 0
+        return "went on"
+
+    assert asyncio.run(scenario()) == "went on"
+
+
+def test_read_within_lets_a_cancellation_from_elsewhere_through() -> None:
+    from tcp_bridge.server import _read_within
+
+    async def scenario() -> None:
+        reader = asyncio.StreamReader()
+        task = asyncio.ensure_future(_read_within(reader, 30.0))
+        await asyncio.sleep(0.01)
+        task.cancel()  # shutdown or eviction
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(scenario())
