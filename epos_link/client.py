@@ -85,6 +85,11 @@ READ_CHUNK = 4096  # one read takes whatever has arrived, up to a few frames
 # The shortest answer frame: DLE STX, op code, length, the 4-byte error code that
 # every answer starts with, CRC (guide 2.2.2 frame, 2.1 answers).
 MIN_ANSWER_FRAME = 10
+# An answer's frame size where the guide fixes it: ReadObject answers Len 4 words,
+# error answers included (2.1.1.1; fixtures/client_error_answer.txt). Waiting for
+# all 14 bytes at once wakes the host once per status poll, with no termios change
+# between polls. Other answers vary (segmented) or are the shortest (10 bytes).
+_ANSWER_FRAME: dict[type, int] = {ReadObjectAnswer: 14}
 _FRAME_CACHE_LIMIT = 4096
 
 # "CRC error": the device got our request damaged; sending it again is right.
@@ -175,10 +180,11 @@ class EposClient:
         self._late_answer_due = False
         self.late_answer_timeout = late_answer_timeout
         self.stats = ClientStats()
-        # Called (on the calling thread) once each request frame has been written:
-        # the answer takes at least the request's wire time, so a caller may use it
-        # (tcp_bridge.workers hands a finished reply to its event loop then).
-        self.on_sent: Optional[Callable[[], None]] = None
+        # Called (on the calling thread) each time the client starts to wait on the
+        # link: once a request frame has been written (its answer takes at least the
+        # request's wire time), and before it waits for a late answer. A caller may
+        # use that time (tcp_bridge.workers hands a finished reply to its event loop).
+        self.on_wait: Optional[Callable[[], None]] = None
         # Encoded ReadObject frames and their names: the hot path encodes nothing.
         self._read_frames: dict[tuple[int, int, int], tuple[bytes, str]] = {}
 
@@ -224,13 +230,20 @@ class EposClient:
 
         ``what`` names the request in a timeout message."""
         transport, decoder = self.transport, self._decoder
+        on_wait = self.on_wait
         if self._late_answer_due:
+            if on_wait is not None:
+                on_wait()
             self._swallow_late_answer()
         transport.reset_input()
         decoder.reset()
         transport.write(frame)
-        if self.on_sent is not None:
-            self.on_sent()
+        if on_wait is not None:
+            on_wait()
+        # What to wait for before looking (SerialTransport.read_some): the answer's
+        # size where the guide fixes it, and never more than that, since a frame the
+        # decoder opened on noise may claim more than the real answer that follows.
+        first = _ANSWER_FRAME.get(answer_type, MIN_ANSWER_FRAME)
         deadline = time.monotonic() + timeout
         read, next_frame, feed = transport.read_some, decoder.next_frame, decoder.feed
         heard = False
@@ -251,9 +264,7 @@ class EposClient:
                     raise EposTimeoutError(
                         f"{what or 'request'}: no answer within {timeout:g} s"
                         + (f" ({held} bytes of an incomplete answer)" if held else ""))
-                # Before the first byte, an answer's smallest frame: the client may
-                # wait for that many at once (SerialTransport.read_some).
-                data = read(READ_CHUNK, left, decoder.wanted if heard else MIN_ANSWER_FRAME)
+                data = read(READ_CHUNK, left, min(decoder.wanted, first) if heard else first)
                 if data:
                     heard = True
                     feed(data)

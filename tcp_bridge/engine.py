@@ -191,7 +191,7 @@ class Engine:
             worker = self._workers.get(getattr(backend, "name", None))  # type: ignore[arg-type]
             if attach is not None and worker is not None:
                 attach(worker.post)
-            sent = getattr(backend, "attach_sent", None)
+            sent = getattr(backend, "attach_wait", None)
             if sent is not None and worker is not None:
                 sent(worker.defer_results())
 

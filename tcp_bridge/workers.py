@@ -23,12 +23,13 @@ interpreter lock while it writes the reply and reads the client's next request;
 the bus thread, which needs the lock to send the next queued request, waits.
 On a serial link that wait is dead time on the wire: R10 on the simulated
 EPOS4 at 115200 baud, 8 clients, spent ~0.1 ms of every 2.5 ms transaction
-there (``bench/bridge.py``). So when a bus's link can say "the request is on
-the wire" (:attr:`epos_link.client.EposClient.on_sent`), a job's result waits
-while another job is queued, and is handed over as soon as that job's first
-request has been sent, i.e. while the wire carries it. At most one job's result
-waits, and never beyond the end of the next job: a job that sends nothing, a
-skipped job and an empty queue hand everything over at once.
+there (``bench/bridge.py``). So when a bus's link can say "I am waiting now"
+(:attr:`epos_link.client.EposClient.on_wait`: a request is on the wire, or a late
+answer is awaited before the next request), a job's result waits while another
+job is queued, and is handed over as soon as that job first waits on the link,
+i.e. while the wire carries its request. At most one job's result waits, and
+never beyond the end of the next job: a job that sends nothing, a skipped job
+and an empty queue hand everything over at once.
 
 Maintenance: a worker may be given ``maintenance``, a callable run on the
 worker thread before each job and whenever the queue has been empty for as
@@ -96,7 +97,7 @@ class BusWorker:
 
     def defer_results(self) -> Callable[[], None]:
         """From now on a result may wait for the next job's first request (module
-        docstring). Returns the hook the link calls once a request is on the wire."""
+        docstring). Returns the hook the link calls when it starts to wait."""
         self._defer = True
         return self.flush
 

@@ -179,3 +179,58 @@ def test_with_nothing_queued_a_result_goes_out_at_once_and_the_hook_is_the_worke
 
     assert asyncio.run(scenario()) == "alone"
     worker.close()
+
+
+def test_a_held_result_is_not_kept_while_the_next_job_waits_for_a_late_answer() -> None:
+    # A result is held until the next job waits on the link. After a request that
+    # timed out in silence, EposClient first waits up to late_answer_timeout for the
+    # late answer (_swallow_late_answer) before it writes anything: that is waiting
+    # too, so the previous job's reply (here a timeout) goes out then, not after it.
+    from epos_link.client import EposClient
+    from epos_link.errors import EposTimeoutError
+    from epos_link.transports.base import Transport
+
+    first_out = threading.Event()
+    seen: List[str] = []
+
+    class Silent(Transport):
+        url = "silent://"
+
+        def write(self, data: bytes) -> None:
+            pass
+
+        def read(self, max_bytes: int, timeout: float) -> bytes:
+            # Called by _swallow_late_answer, before the second request is written.
+            seen.append("out" if first_out.wait(min(timeout, 1.0)) else "held")
+            return b""
+
+        def read_some(self, max_bytes: int, timeout: float, wanted: int = 1) -> bytes:
+            time.sleep(min(timeout, 0.05))
+            return b""
+
+        def reset_input(self) -> None:
+            pass
+
+        def close(self) -> None:
+            pass
+
+    client = EposClient(Silent(), timeout=0.05, retries=0, late_answer_timeout=2.0)
+    worker = BusWorker("ser1")
+    client.on_wait = worker.defer_results()
+    both_queued = threading.Event()
+
+    def read() -> bytes:
+        both_queued.wait(5)
+        return client.read_object(1, 0x6041, 0)
+
+    async def scenario() -> List[object]:
+        first = worker.submit(read)
+        first.add_done_callback(lambda f: first_out.set())
+        second = worker.submit(read)
+        both_queued.set()
+        return list(await asyncio.gather(first, second, return_exceptions=True))
+
+    outcomes = asyncio.run(scenario())
+    worker.close()
+    assert all(isinstance(o, EposTimeoutError) for o in outcomes)
+    assert seen and seen[0] == "out", seen

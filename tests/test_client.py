@@ -276,7 +276,7 @@ def test_open_replay_url_with_trace(tmp_path: Path) -> None:
     assert any(c.startswith("source: epos-link trace of replay://") for c in recorded.comments)
 
 
-def test_on_sent_is_called_once_per_request_after_its_frame_is_written(play: Any) -> None:
+def test_on_wait_is_called_once_per_request_after_its_frame_is_written(play: Any) -> None:
     # tcp_bridge hands a finished reply to its event loop from this hook, while
     # the wire carries the next request: it must come after the write, never before.
     client, replay = play("client_segmented_read_inline.txt")
@@ -288,6 +288,6 @@ def test_on_sent_is_called_once_per_request_after_its_frame_is_written(play: Any
         write(data)
 
     replay.write = counting_write  # type: ignore[method-assign]
-    client.on_sent = lambda: calls.append(+1)
+    client.on_wait = lambda: calls.append(+1)
     assert client.upload(1, 0x1008, 0) == NAME
     assert calls and calls == [-1, +1] * (len(calls) // 2)

@@ -212,3 +212,71 @@ def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire_without_vmin() 
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_steady_stream_of_status_reads_keeps_vmin_and_wakes_once_per_answer() -> None:
+    # A status poll (ReadObject, guide 2.1.1.1: always 14 bytes) is waited for in
+    # one piece: one wake-up per answer and no termios change between polls. Two
+    # would be costly: on an FTDI USB-RS232 adapter each tcsetattr is a USB control
+    # transfer (Linux ftdi_sio.c, ftdi_set_termios sets flow control every time).
+    import epos_link.transports.serial as serial_module
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.link import LinkOptions, PtyLink
+
+    sim = Epos4Simulator(1, [])
+    link = PtyLink(sim, LinkOptions(baud=115200)).start()
+    client = EposClient.open(link.path, baudrate=115200, gateway_node_id=1)
+    try:
+        client.read_object(0, 0x6041, 0)  # warm-up: VMIN settles
+        transport = client.transport
+        assert isinstance(transport, SerialTransport)
+        sets: list = []
+        reads: list = []
+        set_vmin, read_fd = serial_module._set_vmin, transport._read_fd
+        serial_module._set_vmin = lambda fd, vmin: sets.append(vmin) or set_vmin(fd, vmin)
+        transport._read_fd = lambda n, t: reads.append(n) or read_fd(n, t)  # type: ignore
+        try:
+            for _ in range(10):
+                client.read_object(0, 0x6041, 0)
+        finally:
+            serial_module._set_vmin = set_vmin
+        assert len(sets) <= 1, f"{len(sets)} termios changes for 10 reads: {sets}"
+        assert len(reads) == 10, f"{len(reads)} wake-ups for 10 answers"
+    finally:
+        client.close()
+        link.close()
+        sim.close()
+
+
+def test_an_answer_after_noise_with_a_false_sync_is_read_when_it_arrives() -> None:
+    # Line noise that happens to contain DLE STX and a large Len
+    # byte opens a frame that "still needs" ~126 bytes; VMIN is set to that, so the
+    # real answer that follows (14 bytes, whose own DLE STX would resynchronise the
+    # decoder at once) does not wake the reader: it is read only at the deadline.
+    # The reader must wake for the real answer (~20 ms after the noise).
+    import pty as pty_module
+    import tty as tty_module
+
+    master, slave = pty_module.openpty()
+    tty_module.setraw(master)
+    client = EposClient(open_serial(os.ttyname(slave), baudrate=115200), timeout=5.0, retries=0)
+
+    def device() -> None:
+        got = b""
+        while len(got) < len(REQUEST):
+            got += os.read(master, 100)
+        os.write(master, b"\x11\x22\x33\x44\x55\x66\x90\x02\x00\x3f")  # noise, false sync, Len 63
+        time.sleep(0.02)
+        os.write(master, ANSWER)
+
+    writer = threading.Thread(target=device)
+    writer.start()
+    try:
+        started = time.monotonic()
+        assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
+        assert time.monotonic() - started < 2.5  # 100x the expected; the whole timeout is 5 s
+    finally:
+        writer.join()
+        client.close()
+        os.close(master)
+        os.close(slave)

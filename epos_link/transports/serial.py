@@ -16,9 +16,11 @@ discipline reports the port readable only once N bytes are in (Linux n_tty:
 reader once, when its last byte arrives, instead of once per byte (at 115200
 baud a byte takes 87 us; each wake-up costs CPU, and in the bridge it also
 costs a hand-over of Python's interpreter lock, on the path between one
-answer and the next request). The client never states more than a frame
-still needs (:attr:`FrameDecoder.wanted`), and at the deadline whatever has
-arrived is returned, so a short or broken answer is seen as before. Where
+answer and the next request). The client asks for no more than the answer's
+size where the guide fixes it (a status poll's ReadObject answer: 14 bytes, so
+VMIN stays put from one poll to the next) and no more than the frame being
+received still needs (:attr:`FrameDecoder.wanted`); at the deadline whatever
+has arrived is returned, so a short or broken answer is seen as before. Where
 VMIN cannot be set (not a terminal), the reader sleeps for the wire time of
 the bytes still due instead. pyserial's ``read(n)`` waits for all ``n`` bytes,
 so three readers exist, picked by the port's exact class:
@@ -134,7 +136,7 @@ class SerialTransport(Transport):
         if os.name == "posix" and cls is serial.Serial and getattr(port, "fd", None) is not None:
             self._fd = port.fd
             self._read = self._read_fd
-            self._vmin = 1 if _set_vmin(port.fd, 1) else 0  # pyserial's own setting is 1
+            self._vmin = 1 if _set_vmin(port.fd, 1) else 0  # pyserial leaves 0: polls like 1
         elif cls.__module__.endswith("protocol_socket") and getattr(port, "_socket", None):
             self._sock = port._socket
             self._read = self._read_socket

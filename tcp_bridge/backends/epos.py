@@ -58,10 +58,10 @@ class EposBackend:
             self.nodes[node_id] = node
         return node
 
-    def attach_sent(self, hook: Callable[[], None]) -> None:
-        """Call ``hook`` once each request is on the wire (tcp_bridge.workers:
+    def attach_wait(self, hook: Callable[[], None]) -> None:
+        """Call ``hook`` whenever the client starts to wait on the link (tcp_bridge.workers:
         a reply is handed over while the link carries the next request)."""
-        self.client.on_sent = hook
+        self.client.on_wait = hook
 
     def probe(self) -> None:
         """Does the EPOS4 itself answer? (Fail-fast buses, :mod:`tcp_bridge.failfast`.)
