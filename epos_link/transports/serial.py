@@ -17,17 +17,20 @@ reader once, when its last byte arrives, instead of once per byte (at 115200
 baud a byte takes 87 us; each wake-up costs CPU, and in the bridge it also
 costs a hand-over of Python's interpreter lock, on the path between one
 answer and the next request). The client asks for no more than the answer's
-size where the guide fixes it (a status poll's ReadObject answer: 14 bytes, so
-VMIN stays put from one poll to the next) and no more than the frame being
-received still needs (:attr:`FrameDecoder.wanted`); at the deadline whatever
-has arrived is returned, so a short or broken answer is seen as before. Where
+size where the guide fixes it, less its last two bytes (a thread that slept
+through the whole exchange wakes up slower: ``epos_link.client.WAKE_EARLY``),
+and no more than the frame being received still needs
+(:attr:`FrameDecoder.wanted`); at the deadline whatever has arrived is
+returned, so a short or broken answer is seen as before. An answer that comes
+in one piece (a USB adapter's packet) is read by one wake-up, and VMIN stays
+put from one status poll to the next. Where
 VMIN cannot be set (not a terminal), the reader sleeps for the wire time of
 the bytes still due instead. pyserial's ``read(n)`` waits for all ``n`` bytes,
 so three readers exist, picked by the port's exact class:
 
 * a POSIX port (``serial.Serial``): ``select`` on its file descriptor, then one
   ``os.read`` of whatever is there. A termios call only when the number of
-  bytes waited for changes (a steady stream of one request keeps it).
+  bytes waited for changes.
 * ``socket://``: ``select`` and one ``recv``; pyserial's ``in_waiting`` on a
   socket says only 0 or 1, which would cost a system call per byte.
 * anything else (``spy://`` logs inside ``read``, ``loop://``, ``rfc2217://``,
