@@ -106,3 +106,30 @@ def test_answers_follow_each_other_on_one_wire() -> None:
     start = 100.0 + 5 * per_byte
     assert writes == [(pytest.approx(start + k * per_byte), bytes([c]))
                       for k, c in enumerate(b"abcd", start=1)]
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"),
+                    reason="timer slack is a Linux setting (prctl PR_SET_TIMERSLACK)")
+def test_a_paced_pty_link_serves_with_a_1_us_timer_slack_and_a_short_spin() -> None:
+    # A sleep wakes up to 50 us late by default; the link thread asks for 1 us so
+    # that it can time an answer's last byte with a short spin (module docstring).
+    import os
+    import time
+
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.link import PRECISE_SPIN, PtyLink
+
+    sim = Epos4Simulator(1, [])
+    link = PtyLink(sim, LinkOptions(baud=115200)).start()
+    try:
+        deadline = time.monotonic() + 10
+        while link.server.spin != PRECISE_SPIN and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert link.server.spin == PRECISE_SPIN
+        slack = f"/proc/{os.getpid()}/task/{link._thread.native_id}/timerslack_ns"
+        if os.path.exists(slack):
+            with open(slack, encoding="ascii") as fh:
+                assert int(fh.read()) == 1000
+    finally:
+        link.close()
+        sim.close()
