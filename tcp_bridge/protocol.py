@@ -249,6 +249,7 @@ _REPLY_RE: Final = re.compile(
     rb"([0-9]{1,2}|\?) ([SsRr?]) ([0-9]{1,2}|\?)(?:=([\x20-\x7e]+))?([\x06\x15\x18])\r"
 )
 _DECIMAL_CONTEXT: Final = Context(prec=200)  # wide enough for any quantize below
+_ACK_CR: Final = bytes((Status.ACK, CR))  # how a read's reply ends (spec 2.3.2)
 
 
 @dataclass(frozen=True)
@@ -350,7 +351,7 @@ def format_read_reply(axis: int, cmd: int, value: Union[int, float, str]) -> byt
         # The status poll's path (issue 10: it runs between one answer and the next
         # request on the bus): the bytes Reply would make, without its checks, which
         # an int and a valid header cannot fail except by length.
-        raw = f"{axis} R {cmd}={value}\x06\r".encode("ascii")
+        raw = f"{axis} R {cmd}={value}".encode("ascii") + _ACK_CR
         if len(raw) <= REPLY_SIZE:
             return raw.ljust(REPLY_SIZE, b"\x00")
     if not isinstance(value, str):

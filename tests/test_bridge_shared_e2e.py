@@ -22,9 +22,10 @@ import pytest
 
 from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
 from tcp_bridge.engine import build_engine
-from tcp_bridge.protocol import REPLY_SIZE, Status, decode_reply
+from tcp_bridge.protocol import Status
 from tcp_bridge.server import BridgeServer, ServerOptions
 from tcp_bridge.shared_reads import SHARE_WINDOW
+from tests.helpers import psi_ask
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.02,
           "poll_interval": 0.002}
@@ -60,13 +61,7 @@ class Served:
 
 
 def ask(sock: socket.socket, line: str) -> Tuple[Status, str]:
-    sock.sendall(line.encode() + b"\r")
-    data = b""
-    while len(data) < REPLY_SIZE:
-        chunk = sock.recv(REPLY_SIZE - len(data))
-        assert chunk, "the bridge closed the connection"
-        data += chunk
-    reply = decode_reply(data)
+    reply = psi_ask(sock, line)
     return reply.status, reply.value or ""
 
 

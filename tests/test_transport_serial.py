@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from typing import Iterator, Tuple
 
 import pytest
 
@@ -140,78 +141,72 @@ def test_client_over_pty_times_out_on_a_silent_device() -> None:
         client.close()
 
 
-def test_read_some_wakes_once_when_the_wanted_bytes_are_in() -> None:
+@pytest.fixture
+def pty_port() -> Iterator[Tuple[int, SerialTransport]]:
+    """(master fd, the slave opened as a serial port at 115200 baud)."""
+    import pty as pty_module
+
+    master, slave = pty_module.openpty()
+    link = open_serial(os.ttyname(slave), baudrate=115200)
+    try:
+        yield master, link
+    finally:
+        link.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_read_some_wakes_once_when_the_wanted_bytes_are_in(
+        pty_port: Tuple[int, SerialTransport]) -> None:
     # VMIN = wanted (VTIME 0): the port turns readable only once all of them are
     # in, so an answer sent byte by byte is read in one piece, by one wake-up.
-    import pty as pty_module
+    master, link = pty_port
 
-    master, slave = pty_module.openpty()
-    try:
-        link = open_serial(os.ttyname(slave), baudrate=115200)
+    def dribble() -> None:
+        for b in b"\x90\x02\x00\x04\x00":
+            os.write(master, bytes([b]))
+            time.sleep(0.02)
 
-        def dribble() -> None:
-            for b in b"\x90\x02\x00\x04\x00":
-                os.write(master, bytes([b]))
-                time.sleep(0.02)
-
-        writer = threading.Thread(target=dribble)
-        writer.start()
-        assert link.read_some(16, 5.0, wanted=5) == b"\x90\x02\x00\x04\x00"
-        writer.join()
-        # A plain read() takes the first byte that comes, as before.
-        os.write(master, b"\x01\x02")
-        assert link.read(16, 5.0)[:1] == b"\x01"
-        link.close()
-    finally:
-        os.close(master)
-        os.close(slave)
+    writer = threading.Thread(target=dribble)
+    writer.start()
+    assert link.read_some(16, 5.0, wanted=5) == b"\x90\x02\x00\x04\x00"
+    writer.join()
+    # A plain read() takes the first byte that comes, as before.
+    os.write(master, b"\x01\x02")
+    assert link.read(16, 5.0)[:1] == b"\x01"
 
 
-def test_read_some_returns_what_came_at_the_deadline() -> None:
+def test_read_some_returns_what_came_at_the_deadline(
+        pty_port: Tuple[int, SerialTransport]) -> None:
     # Fewer bytes than wanted (a lost byte, a short answer): at the deadline the
     # reader gets what is there, so the client can say what it heard.
-    import pty as pty_module
-
-    master, slave = pty_module.openpty()
-    try:
-        link = open_serial(os.ttyname(slave), baudrate=115200)
-        os.write(master, b"\x90\x02\x00")
-        time.sleep(0.05)
-        assert link.read_some(16, 0.1, wanted=9) == b"\x90\x02\x00"
-        assert link.read_some(16, 0.05, wanted=9) == b""  # nothing more: nothing
-        link.close()
-    finally:
-        os.close(master)
-        os.close(slave)
+    master, link = pty_port
+    os.write(master, b"\x90\x02\x00")
+    time.sleep(0.05)
+    assert link.read_some(16, 0.1, wanted=9) == b"\x90\x02\x00"
+    assert link.read_some(16, 0.05, wanted=9) == b""  # nothing more: nothing
 
 
-def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire_without_vmin() -> None:
+def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire_without_vmin(
+        pty_port: Tuple[int, SerialTransport]) -> None:
     # Where VMIN cannot be set, the reader sleeps instead. At 115200 baud a byte
     # takes 10 / 115200 s (8N1, guide 2.2.6): with 9 bytes wanted and 1 already
     # received, 7 more are certainly still on the wire.
-    import pty as pty_module
-
-    master, slave = pty_module.openpty()
-    try:
-        link = open_serial(os.ttyname(slave), baudrate=115200)
-        link._vmin = 0  # what open() finds on a port that is not a terminal
-        pauses: list = []
-        link._sleep = pauses.append
-        os.write(master, b"\x90\x02")
-        deadline = time.monotonic() + 5
-        while not link.read_some(1, 0.0, wanted=1) and time.monotonic() < deadline:
-            pass  # take one byte, leave one waiting
-        assert link.read_some(16, 1.0, wanted=9) == b"\x02"
-        assert pauses == [pytest.approx(7 * 10 / 115200)]
-        os.write(master, b"\x00\x04")  # bytes already there: no pause
-        time.sleep(0.05)
-        pauses.clear()
-        assert link.read_some(16, 1.0, wanted=3) == b"\x00\x04"
-        assert pauses == []
-        link.close()
-    finally:
-        os.close(master)
-        os.close(slave)
+    master, link = pty_port
+    link._vmin = 0  # what open() finds on a port that is not a terminal
+    pauses: list = []
+    link._sleep = pauses.append  # type: ignore[assignment]
+    os.write(master, b"\x90\x02")
+    deadline = time.monotonic() + 5
+    while not link.read_some(1, 0.0, wanted=1) and time.monotonic() < deadline:
+        pass  # take one byte, leave one waiting
+    assert link.read_some(16, 1.0, wanted=9) == b"\x02"
+    assert pauses == [pytest.approx(7 * 10 / 115200)]
+    os.write(master, b"\x00\x04")  # bytes already there: no pause
+    time.sleep(0.05)
+    pauses.clear()
+    assert link.read_some(16, 1.0, wanted=3) == b"\x00\x04"
+    assert pauses == []
 
 
 def test_status_reads_wake_once_per_answer_that_comes_in_one_piece() -> None:

@@ -103,6 +103,14 @@ def urb_arg(endpoint: int, payload: bytes, length: int, addr: int = 0x7000) -> t
     return Data(b"", children={0: urb}), urb
 
 
+def submit(d: Dispatcher, endpoint: int, payload: bytes, length: int) -> tuple[Client, Data]:
+    """USBDEVFS_SUBMITURB of one bulk URB; (the client, the URB)."""
+    arg, urb = urb_arg(endpoint, payload, length)
+    client = Client(m.USBDEVFS_SUBMITURB, arg)
+    d.handle(client)
+    return client, urb
+
+
 def reap(d: Dispatcher, conn_client: Client) -> Client:
     """The next ioctl on the same open file (umockdev: the same IoctlClient)."""
     conn_client.request, conn_client.arg = m.USBDEVFS_REAPURBNDELAY, Data(bytes(8))
@@ -113,9 +121,7 @@ def reap(d: Dispatcher, conn_client: Client) -> Client:
 
 def test_write_goes_to_the_simulator_and_the_urb_is_reaped(setup: Any) -> None:
     d, unit, timers, out = setup
-    arg, urb = urb_arg(m.EP_OUT, b"\x90\x02", 2)
-    client = Client(m.USBDEVFS_SUBMITURB, arg)
-    d.handle(client)
+    client, urb = submit(d, m.EP_OUT, b"\x90\x02", 2)
     assert client.completions == [(0, 0)] and out == [(0, b"\x90\x02")]
     reap(d, client)
     assert client.completions == [(0, 0)] and client.arg.children[0].pointers[0] is urb
@@ -123,9 +129,7 @@ def test_write_goes_to_the_simulator_and_the_urb_is_reaped(setup: Any) -> None:
 
 def test_a_read_waits_for_the_answer_then_reaps_it(setup: Any) -> None:
     d, unit, timers, out = setup
-    arg, urb = urb_arg(m.EP_IN, b"", 64)
-    client = Client(m.USBDEVFS_SUBMITURB, arg)
-    d.handle(client)
+    client, urb = submit(d, m.EP_IN, b"", 64)
     reap(d, client)
     assert client.completions == [] and timers.pending   # held, not spinning
     d.answer(0, b"answer")
@@ -137,18 +141,14 @@ def test_a_read_waits_for_the_answer_then_reaps_it(setup: Any) -> None:
 
 def reading(d: Dispatcher) -> Client:
     """A client with an IN URB in flight (a read waiting for the device)."""
-    arg, _ = urb_arg(m.EP_IN, b"", 64)
-    client = Client(m.USBDEVFS_SUBMITURB, arg)
-    d.handle(client)
+    client, _ = submit(d, m.EP_IN, b"", 64)
     assert client.completions == [(0, 0)]
     return client
 
 
 def test_with_nothing_in_flight_a_reap_answers_eagain_at_once(setup: Any) -> None:
     d, unit, timers, out = setup
-    arg, _ = urb_arg(m.EP_OUT, b"x", 1)
-    client = Client(m.USBDEVFS_SUBMITURB, arg)
-    d.handle(client)
+    client, _ = submit(d, m.EP_OUT, b"x", 1)
     reap(d, client)
     assert client.completions == [(0, 0)]                # the OUT URB
     reap(d, client)
@@ -195,9 +195,7 @@ def test_an_exception_in_the_model_completes_with_eio(setup: Any, monkeypatch: A
         raise KeyError("bug")
 
     monkeypatch.setattr(unit, "submit", boom)
-    arg, _ = urb_arg(m.EP_OUT, b"x", 1)
-    client = Client(m.USBDEVFS_SUBMITURB, arg)
-    d.handle(client)
+    client, _ = submit(d, m.EP_OUT, b"x", 1)
     assert client.completions == [(-1, errno.EIO)]
     assert "KeyError" in capsys.readouterr().err
 
