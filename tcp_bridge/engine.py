@@ -56,7 +56,7 @@ from .moves import Follower, plan_move, stored_profile
 from .operations import AxisOps
 from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
 from .sdo import SdoPort
-from .shared_reads import SHARE_WINDOW, SharedReads
+from .shared_reads import BUSY, SHARE_WINDOW, SharedReads
 from .motion import Timing
 from .units import parse_value
 from .workers import BusWorker
@@ -354,6 +354,13 @@ class Engine:
             self._close_shared(job)
         if job.bus is None and not job.companions:
             return job()  # nothing to wait for: answered on the loop
+        fast = self._from_pdo(job)
+        if fast is not None and self._refusal(job) is None:
+            # A status poll answered from PDOs (shared_reads rule 5), the common case
+            # of many polling clients: no future, no task switch.
+            answer = self.shared[job.bus].answer_now(fast)  # type: ignore[index]
+            if answer is not BUSY:
+                return answer  # type: ignore[no-any-return]
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.job_timeout
         plan = steps(job)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import re
+from functools import lru_cache
 from dataclasses import dataclass
 from decimal import ROUND_HALF_EVEN, Context, Decimal
 from enum import IntEnum
@@ -236,11 +237,17 @@ class LineSplitter:
             self._discarding = True
 
 
+# Clients poll the same few lines over and over ("3R10"): a request is immutable,
+# so the parse of a line is kept. Bounded; a line that fails is never kept (an
+# exception is not cached), so junk costs a parse each time and no memory.
+_parse_known = lru_cache(maxsize=512)(parse_request)
+
+
 def parse_item(item: Line) -> Request:
     """:func:`parse_request` for a splitter item; a :class:`LineTooLong` is raised."""
     if isinstance(item, LineTooLong):
         raise item
-    return parse_request(item)
+    return _parse_known(item)
 
 
 # --- replies -----------------------------------------------------------------
@@ -354,10 +361,21 @@ def format_read_reply(axis: int, cmd: int, value: Union[int, float, str]) -> byt
         raw = f"{axis} R {cmd}={value}".encode("ascii") + _ACK_CR
         if len(raw) <= REPLY_SIZE:
             return raw.ljust(REPLY_SIZE, b"\x00")
+    if type(value) is float:
+        return _float_read_reply(axis, cmd, value)
+    return _read_reply(axis, cmd, value)
+
+
+def _read_reply(axis: int, cmd: int, value: Union[int, float, str]) -> bytes:
     if not isinstance(value, str):
         room = REPLY_SIZE - len(f"{axis} R {cmd}=") - 2
         value = format_value(value, room)
     return Reply(axis, "R", cmd, Status.ACK, value).encode()
+
+
+# A position or velocity polled at rest is the same float poll after poll, and its
+# decimal text costs ~10 us: the replies are kept (bounded; a failure is not kept).
+_float_read_reply = lru_cache(maxsize=1024)(_read_reply)
 
 
 def format_status_reply(request: Request, status: Status) -> bytes:

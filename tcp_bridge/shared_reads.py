@@ -51,6 +51,9 @@ from typing import Any, Callable, Dict, Final, Hashable, List, Optional, Protoco
 SHARE_WINDOW: Final = 0.002  # seconds a group may wait for the requests it expects (rule 4)
 
 
+BUSY: Final = object()  # SharedReads.answer_now(): not answered, submit the read
+
+
 class NeedsBus(Exception):
     """A fast plan cannot answer without the bus (rule 5): queue the read instead."""
 
@@ -99,18 +102,17 @@ class SharedReads:
                fast: Optional[Callable[[], Any]] = None) -> "asyncio.Future[Any]":
         """Queue ``job``; with ``key`` (a read), join an identical queued read if there is
         one; with ``fast`` too, answer at once if the bus is idle (rule 5)."""
-        self.requests += 1
-        if key is not None and fast is not None and self.worker.idle():
+        if key is not None and fast is not None:
             done: "asyncio.Future[Any]" = asyncio.get_running_loop().create_future()
             try:
-                done.set_result(fast())
-            except NeedsBus:
-                pass
+                answer = self.answer_now(fast)
             except Exception as exc:
                 done.set_exception(exc)
-            if done.done():
-                self.fast += 1
                 return done
+            if answer is not BUSY:
+                done.set_result(answer)
+                return done
+        self.requests += 1
         if key is None:
             future = self.worker.submit(self._counted(job))
             self.close_groups()  # after the put: a gathering group sees it queued (rule 4)
@@ -129,6 +131,25 @@ class SharedReads:
         group.inner.add_done_callback(lambda inner: _settle(group, inner))
         waiter.add_done_callback(lambda w: self._abandon(group, w))
         return waiter
+
+    def answer_now(self, fast: Callable[[], Any]) -> Any:
+        """Rule 5 alone: what ``fast`` answers if the bus is idle and it needs no
+        transfer (or what it raises), else :data:`BUSY`: submit the read then."""
+        if not self.worker.idle():
+            return BUSY
+        try:
+            answer = fast()
+        except NeedsBus:
+            return BUSY
+        except Exception:
+            self._count_fast()
+            raise
+        self._count_fast()
+        return answer
+
+    def _count_fast(self) -> None:
+        self.requests += 1
+        self.fast += 1
 
     def close_groups(self) -> None:
         """Rule 3: reads submitted from now on do not join the groups queued so far."""
@@ -189,4 +210,4 @@ def _settle(group: _Group, inner: "asyncio.Future[Any]") -> None:
             waiter.set_result(inner.result())
 
 
-__all__ = ["NeedsBus", "SHARE_WINDOW", "SharedReads"]
+__all__ = ["BUSY", "NeedsBus", "SHARE_WINDOW", "SharedReads"]

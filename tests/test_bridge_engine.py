@@ -261,6 +261,21 @@ def test_offset_and_inversion_on_target_and_position() -> None:
     assert ok(engine, "1R02") == "10"
 
 
+def test_a_position_poll_follows_every_change_of_inversion_and_offset() -> None:
+    # The scalings and the formatted replies are kept between polls (issue 14):
+    # each change of 22 or 25, and each raw value, must still show at once.
+    engine, nodes = make()
+    nodes[1].values[(0x6064, 0)] = 2500
+    seen = [ok(engine, "1R12")]
+    for line in ("1S25=0.5", "1S22=-1", "1S25=0", "1S22=1"):
+        ok(engine, line)
+        seen.append(ok(engine, "1R12"))
+    nodes[1].values[(0x6064, 0)] = 2501
+    seen.append(ok(engine, "1R12"))
+    assert seen == ["2.5", "3", "-2", "-2.5", "2.5", "2.501"]
+    assert ok(engine, "2R12") == "0"  # the same raw value, another axis: its own scaling
+
+
 def test_display_limits_swap_on_an_inverted_axis() -> None:
     engine, nodes = make()
     node = nodes[1]

@@ -307,6 +307,20 @@ def test_parse_invalid_answers_can_with_recognised_header(line: bytes, header: b
     assert format_error_reply(info.value) == (header + b"\x18\r").ljust(30, b"\0")
 
 
+def test_kept_parses_are_bounded_and_junk_is_never_kept() -> None:
+    from tcp_bridge.protocol import _parse_known
+    _parse_known.cache_clear()
+    for line, _ in INVALID:
+        with pytest.raises(InvalidCommand):
+            parse_item(line)
+    assert _parse_known.cache_info().currsize == 0
+    for axis in range(1, 61):
+        for cmd in range(100):
+            assert parse_item(b"%dR%02d" % (axis, cmd)) == ReadRequest(axis, cmd)
+    assert parse_item(b"3R10") is parse_item(b"3R10")  # kept: the same immutable request
+    assert _parse_known.cache_info().currsize == _parse_known.cache_info().maxsize
+
+
 def test_recognise_header() -> None:
     assert recognise_header(b"3s02=1x") == (3, "S", 2)
     assert recognise_header(b"45r7") == (45, "R", 7)
@@ -467,6 +481,15 @@ def test_read_replies_are_always_30_bytes(axis: int, cmd: int, value: float) -> 
         assert int(reply.value) == value
     else:
         assert float(reply.value) == pytest.approx(value, rel=1e-12, abs=1e-9)
+    assert format_read_reply(axis, cmd, value) == data  # a kept reply is the same
+
+
+@given(axis=st.integers(1, 60), cmd=st.integers(0, 99), value=st.integers(-2**31, 2**31 - 1))
+def test_a_float_reply_equals_the_reply_of_the_same_integer(axis: int, cmd: int,
+                                                            value: int) -> None:
+    # Kept float replies are looked up by value, and 2.0 == 2: never mixed up.
+    assert format_read_reply(axis, cmd, float(value)) == format_read_reply(axis, cmd, value)
+    assert format_read_reply(axis, cmd, value + 0.5).rstrip(b"\0").endswith(b".5\x06\r")
 
 
 @given(data=st.binary(min_size=30, max_size=30))

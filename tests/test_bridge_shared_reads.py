@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tcp_bridge.shared_reads import NeedsBus, SharedReads
+from tcp_bridge.shared_reads import BUSY, NeedsBus, SharedReads
 from tcp_bridge.workers import BusWorker
 
 
@@ -352,6 +352,24 @@ def test_a_fast_read_that_needs_the_bus_is_queued() -> None:
         assert read.result() == "bus"
         failing = bus.shared.submit(lambda: "bus", (1, 10), fast=lambda: 1 / 0)
         assert isinstance(failing.exception(), ZeroDivisionError)  # a real error is the answer
+    asyncio.run(main())
+
+
+def test_answer_now_answers_only_an_idle_bus_and_counts_what_it_answered() -> None:
+    async def main() -> None:
+        bus = Bus()
+
+        def stale() -> str:
+            raise NeedsBus("no fresh PDO")
+        assert bus.shared.answer_now(lambda: "pdo") == "pdo"
+        assert bus.shared.answer_now(stale) is BUSY
+        with pytest.raises(ZeroDivisionError):
+            bus.shared.answer_now(lambda: 1 / 0)
+        assert (bus.shared.fast, bus.shared.requests) == (2, 2)  # the stale one: not answered
+        write = bus.write("S04=1")
+        assert bus.shared.answer_now(lambda: "pdo") is BUSY  # never overtakes a queued job
+        await drain(bus)
+        assert write.done() and bus.shared.fast == 2
     asyncio.run(main())
 
 
