@@ -23,7 +23,9 @@ Connection slots cannot be held hostage (issue 12):
 * **idle timeout**: a connection is closed when it has sent no *request* for
   ``idle_timeout`` seconds. Only a complete request that parses resets the
   clock (so does answering one): bytes trickled without ever completing a
-  request, or lines of junk, do not. The default, 60 s
+  request, or lines of junk, do not; nor does a client that sends requests
+  but never reads the replies (its writes cannot drain, so nothing is read
+  from it any more). The default, 60 s
   (:data:`DEFAULT_IDLE_TIMEOUT`), is far above the polling period of the
   clients this gateway serves: EPICS motor drivers and NICOS poll each axis
   about once a second while it moves and every few seconds at rest, so
@@ -78,6 +80,7 @@ class _Connection:
         self.busy = False  # a request in flight: never evicted, never idle
         self.waiting = False  # waiting for bytes between requests: may be evicted
         self.last_request = now  # loop time of the last complete request (or connect)
+        self.watchdog: Optional[asyncio.TimerHandle] = None  # the idle timeout
 
 
 class BridgeServer:
@@ -150,13 +153,16 @@ class BridgeServer:
         conn = _Connection(task, writer, asyncio.get_running_loop().time())
         self._connections.add(conn)
         log.info("client %s connected", peer)
+        self._watch(conn)
         try:
             await self._converse(conn, reader, writer)
         except (ConnectionError, OSError) as exc:
             log.info("client %s: %s", peer, exc)
         except asyncio.CancelledError:
-            pass  # shutdown or eviction of an idle connection
+            pass  # shutdown, eviction or idle timeout
         finally:
+            if conn.watchdog is not None:
+                conn.watchdog.cancel()
             self._connections.discard(conn)  # the slot is free before the close handshake
             writer.close()
             try:
@@ -165,12 +171,28 @@ class BridgeServer:
                 pass
             log.info("client %s disconnected", peer)
 
-    def _time_left(self, conn: _Connection) -> Optional[float]:
-        """Seconds until ``conn`` is idle too long (None: no limit)."""
+    def _watch(self, conn: _Connection) -> None:
+        """The idle timeout: one timer per connection, not one per read (a timer costs
+        more than the rest of a status poll's bookkeeping), checked when it fires.
+
+        It closes a connection that sent no request for ``idle_timeout`` seconds and
+        has none in flight, whether it waits for bytes or for a client that does not
+        read its replies (a write that cannot drain).
+        """
         limit = self.options.idle_timeout
         if limit is None:
-            return None
-        return conn.last_request + limit - asyncio.get_running_loop().time()
+            return
+        loop = asyncio.get_running_loop()
+        due = conn.last_request + limit
+        now = loop.time()
+        if conn.busy or now < due:
+            # A request came since the timer was set, or one is in flight (its
+            # answer moves last_request on): look again then.
+            conn.watchdog = loop.call_at(now + limit if conn.busy else due, self._watch, conn)
+            return
+        log.info("client %s sent no request for %g s; closing", conn.peer, limit)
+        conn.watchdog = None
+        conn.task.cancel()
 
     async def _converse(self, conn: _Connection, reader: asyncio.StreamReader,
                         writer: asyncio.StreamWriter) -> None:
@@ -178,16 +200,9 @@ class BridgeServer:
         loop = asyncio.get_running_loop()
         splitter = LineSplitter(self.options.max_line)
         while not self._closing:
-            left = self._time_left(conn)
             conn.waiting = True
             try:
-                if left is not None and left <= 0:
-                    raise asyncio.TimeoutError
-                data = await _read_within(reader, left)
-            except asyncio.TimeoutError:
-                log.info("client %s sent no request for %g s; closing", conn.peer,
-                         self.options.idle_timeout)
-                return
+                data = await reader.read(READ_SIZE)
             finally:
                 conn.waiting = False
             if not data:
@@ -271,33 +286,3 @@ class BridgeServer:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-
-async def _read_within(reader: asyncio.StreamReader, left: Optional[float]) -> bytes:
-    """``reader.read(READ_SIZE)``, or asyncio.TimeoutError after ``left`` seconds.
-
-    ``asyncio.wait_for`` runs the read in a Task of its own (Python 3.10, 3.11), a
-    cost paid on every request; a timer that cancels the connection's own task
-    costs one handle, which is what ``asyncio.timeout()`` (3.11) does. A
-    cancellation from elsewhere (shutdown, eviction) stays a cancellation.
-    """
-    if left is None:
-        return await reader.read(READ_SIZE)
-    task = asyncio.current_task()
-    assert task is not None
-    expired = False
-
-    def expire() -> None:
-        nonlocal expired
-        expired = True
-        task.cancel()
-
-    timer = asyncio.get_running_loop().call_later(left, expire)
-    try:
-        return await reader.read(READ_SIZE)
-    except asyncio.CancelledError:
-        uncancel = getattr(task, "uncancel", None)  # 3.11+: count our own cancel off
-        if expired and (uncancel is None or uncancel() == 0):
-            raise asyncio.TimeoutError from None
-        raise
-    finally:
-        timer.cancel()
