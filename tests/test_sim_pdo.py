@@ -157,3 +157,45 @@ def test_a_reset_node_brings_back_the_default_mapping(bus) -> None:  # type: ign
     assert [v.index for v in node.tpdo[1].map] == [0x6041]  # the EDS default again
     node.tpdo[2].read()
     assert not node.tpdo[2].enabled
+
+
+# -- quiet drives are cheap: one wake-up for all, on a common grid ----------------------------
+
+
+def test_quiet_drives_are_sampled_at_the_same_instants() -> None:
+    from epos_link.simulator.core import SimulatedDrive
+    from epos_link.simulator.pdo import GRID, QUIET
+
+    samples = []
+    for node_id, now in ((2, 10.0011), (3, 10.0037)):  # sampled 2.6 ms apart
+        drive = SimulatedDrive(node_id, lambda: now)
+        store = drive.store
+        store.write_value(0x1800, 1, 0x80000180 + node_id)  # not valid while mapping
+        store.write_value(0x1A00, 0, 0)
+        store.write_value(0x1A00, 1, 0x60410010)
+        store.write_value(0x1A00, 0, 1)
+        store.write_value(0x1800, 5, 50)  # event timer 50 ms
+        store.write_value(0x1800, 1, 0x180 + node_id)
+        assert len(drive.tpdo.due(now)) == 1  # the first sample is sent
+        assert drive.tpdo.due(now) == []  # nothing changed: quiet
+        samples.append((now, drive.tpdo.next_sample))
+    (t1, n1), (t2, n2) = samples
+    assert n1 == n2  # one wake-up of the ticker serves both
+    assert t2 + QUIET <= n2 <= t1 + QUIET + GRID
+    assert round(n1 / GRID, 6).is_integer()
+
+
+def test_the_ticker_sleeps_while_every_drive_is_quiet(bus) -> None:  # type: ignore[no-untyped-def]
+    import time
+    sim, node = bus
+    map_status(node)  # event timer 20 ms, quiet otherwise
+    node.nmt.state = "OPERATIONAL"
+    collect(node, 1, 2)
+    drive = sim.drives[NODE]
+    calls = []
+    send = drive.send_pdos
+    drive.send_pdos = lambda now: (calls.append(now), send(now))  # type: ignore[method-assign]
+    time.sleep(1.0)
+    # A ticker waking every 2 ms looks 500 times a second; a quiet drive needs a
+    # look every 10 ms (QUIET) and at its event timer. A busy machine looks less.
+    assert 0 < len(calls) < 300

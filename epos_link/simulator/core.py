@@ -78,7 +78,7 @@ class SimulatedDrive:
         self.local_node: Optional[canopen.LocalNode] = None
         self.network: Optional[canopen.Network] = None  # where boot-up messages and PDOs go
         self.tpdo = TransmitPdos(self.store)
-        self.on_operational: Callable[[], None] = lambda: None  # wakes the PDO ticker
+        self.wake_ticker: Callable[[], None] = lambda: None  # the PDO ticker samples now
         # The serial thread and the CAN notifier thread both reach this store.
         self.lock = threading.RLock()
         for name in ("read", "write"):
@@ -88,6 +88,7 @@ class SimulatedDrive:
         def write_and_touch(index: int, subindex: int, data: bytes) -> None:
             write(index, subindex, data)
             self.tpdo.touch()  # a quiet drive samples its PDO data at the next tick
+            self.wake_ticker()
         self.store.write = write_and_touch  # type: ignore[method-assign]
 
     def attach(self, node: canopen.LocalNode, network: canopen.Network) -> None:
@@ -104,6 +105,11 @@ class SimulatedDrive:
         self.local_node = node
         self.network = network
         network.add_node(node)
+
+    @property
+    def next_sample(self) -> float:
+        """When the PDO ticker must sample this drive again (-inf: at its next tick)."""
+        return self.tpdo.next_sample if self.transmitting else float("inf")
 
     def send_pdos(self, now: float) -> None:
         """Send the transmit PDOs that are due (:class:`~epos_link.simulator.pdo.PdoTicker`),
@@ -165,7 +171,7 @@ class SimulatedDrive:
         self.drive.remote = state is NmtState.OPERATIONAL  # statusword bit 9
         if state is NmtState.OPERATIONAL:
             self.tpdo.touch()
-            self.on_operational()
+            self.wake_ticker()
         else:
             self.tpdo.reset()  # nothing is sent outside Operational
 
@@ -208,7 +214,7 @@ class Epos4Simulator:
         self._pdo: Optional[PdoTicker] = PdoTicker(lambda: tuple(self.drives.values()),
                                                    self.clock, tick=pdo_tick)
         for sim in self.drives.values():
-            sim.on_operational = self._pdo.wake
+            sim.wake_ticker = self._pdo.wake
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,

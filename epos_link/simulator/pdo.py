@@ -34,7 +34,10 @@ Transmission, with what is **chosen** where CiA 301 leaves it to the device:
   that got no SDO write since, is sampled only every ``QUIET`` seconds (10 ms)
   and when an event timer is due (chosen, to keep idle drives cheap: what
   changes at rest without a write, such as the end of the self test or a fault
-  injected through the Python API, is sent up to 10 ms late);
+  injected through the Python API, is sent up to 10 ms late). These samples
+  fall on a common grid of the clock (``GRID``, 5 ms), so that the ticker
+  wakes once for all quiet drives, not once for each: an event timer PDO may
+  go out up to 5 ms after its period (chosen);
 * sampled and sent under the drive's lock: a PDO received after the answer to
   an SDO write shows the drive after that write (the order the bridge's PDO
   reads rely on, ``tcp_bridge.pdo_status``).
@@ -44,6 +47,7 @@ drive whose firmware does not allow those objects in a PDO (tests).
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -64,6 +68,7 @@ EVENT_DRIVEN: Final = frozenset({254, 255})
 TICK: Final = 0.002  # seconds between samples (chosen, see the module docstring)
 MAX_ENTRIES: Final = 8
 QUIET: Final = 0.01  # seconds between samples of a drive at rest (chosen, see above)
+GRID: Final = 0.005  # seconds: quiet drives are sampled at multiples of it (see above)
 IDLE_WAIT: Final = 0.5  # seconds the ticker sleeps while no drive is Operational (a bound only)
 
 
@@ -113,6 +118,11 @@ class TransmitPdos:
 
     def wants_sample(self, now: float) -> bool:
         return now >= self._next_sample
+
+    @property
+    def next_sample(self) -> float:
+        """When this drive wants to be sampled again (-inf: at the next tick)."""
+        return self._next_sample
 
     def _mapping_subs(self, index: int) -> List[int]:
         return sorted(getattr(self.store.od[index], "subindices", {}))
@@ -200,7 +210,7 @@ class TransmitPdos:
                 out.append((plan.cob_id, data))
             if plan.timer > 0:
                 next_sample = min(next_sample, sent.at + plan.timer)
-        self._next_sample = next_sample if quiet else float("-inf")
+        self._next_sample = math.ceil(next_sample / GRID) * GRID if quiet else float("-inf")
         return out
 
 
@@ -208,9 +218,13 @@ class PdoTicker:
     """One thread per simulator: every ``tick`` seconds, each Operational drive sends
     what is due (:meth:`TransmitPdos.due`) on the virtual bus.
 
-    While no drive is Operational (``transmitting``), the thread sleeps until
-    :meth:`wake` (a drive entered Operational): a ticking thread would take the
-    interpreter from the serial link's thread 500 times a second for nothing.
+    The thread shares the interpreter with whatever runs in the same process (the
+    serial link's thread, a bridge under test), so it wakes only when a drive
+    wants a sample: every tick while one moves, else at the earliest quiet sample
+    or event timer of all (``next_sample``). While no drive is Operational
+    (``transmitting``) it sleeps until :meth:`wake`. A drive calls :meth:`wake`
+    when it enters Operational or gets an SDO write (``TransmitPdos.touch``), so a
+    change is still sampled at once.
     """
 
     def __init__(self, drives: Callable[[], Iterable[object]], clock: Callable[[], float], *,
@@ -226,7 +240,7 @@ class PdoTicker:
         self._thread.start()
 
     def wake(self) -> None:
-        """A drive entered Operational: tick again."""
+        """A drive entered Operational or was written: sample at the next tick."""
         self._wake.set()
 
     def _run(self) -> None:
@@ -249,7 +263,18 @@ class PdoTicker:
             delay = next_at - time.monotonic()
             if delay < 0:  # late (a loaded machine): skip ahead, never burst
                 next_at, delay = time.monotonic(), 0.0
-            self._stop.wait(delay)
+            # Every drive quiet: sleep until the first wants a sample (bounded by
+            # QUIET, whatever the simulator's clock does), or until wake().
+            wanted = min((getattr(d, "next_sample", float("-inf")) for d in drives))
+            quiet = min(wanted - self._clock(), QUIET)
+            if quiet > delay:
+                next_at, delay = next_at + quiet - delay, quiet
+            if self._wake.wait(delay):
+                # A tick after the wake, as a ticking drive would sample it: the
+                # answer to the SDO write that woke it goes out first.
+                self._wake.clear()
+                self._stop.wait(self.tick)
+                next_at = time.monotonic()
 
     def close(self) -> None:
         self._stop.set()
