@@ -208,6 +208,10 @@ class LineSplitter:
 
     def feed(self, data: bytes) -> list[Line]:
         data = bytes(data)
+        if (data[-1:] == b"\r" and not self._buf and not self._discarding
+                and 1 < len(data) <= self.max_line + 1 and data.find(b"\r") == len(data) - 1
+                and b"\n" not in data and data[0] != 0):
+            return [data[:-1]]  # one whole request, the usual case: what the loop below gives
         items: list[Line] = []
         start = 0
         for m in _TERMINATOR_RE.finditer(data):

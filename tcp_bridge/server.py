@@ -233,7 +233,8 @@ class BridgeServer:
                     writer.write(reply)
                 if self._closing:
                     break
-            await writer.drain()
+            if writer.transport.get_write_buffer_size():
+                await writer.drain()  # the client reads slower than it asks
 
     async def _answer(self, item: Line) -> Tuple[bytes, bool]:
         """The one place where an exception becomes a reply (CAN or NAK).

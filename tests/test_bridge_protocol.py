@@ -223,6 +223,15 @@ def test_any_split_gives_the_same_items(data: bytes, cuts: List[int]) -> None:
     assert norm(items) == feed_whole(data, 32)
 
 
+@given(before=stream_bytes, line=st.binary(max_size=40) | st.sampled_from(
+    [b"3R10", b"\x003R10", b"1" * 32, b"1" * 33, b"", b"3R\n10", b"3R\r10"]))
+def test_one_line_per_read_gives_what_the_general_path_gives(before: bytes, line: bytes) -> None:
+    # feed() takes a short cut for a read that is one whole request ending in CR.
+    s = LineSplitter(max_line=32)
+    items = s.feed(before) + s.feed(line + b"\r")
+    assert norm(items) == feed_bytewise(before + line + b"\r", 32)  # never the short cut
+
+
 @given(data=stream_bytes)
 def test_random_bytes_only_yield_lines_or_protocol_errors(data: bytes) -> None:
     for item in LineSplitter(max_line=32).feed(data):
