@@ -168,7 +168,10 @@ class BridgeServer:
             try:
                 await asyncio.wait_for(writer.wait_closed(), 1.0)
             except (ConnectionError, OSError, asyncio.TimeoutError, asyncio.CancelledError):
-                pass
+                # close() waits for the replies still buffered to go out; a client
+                # that does not read them would hold the socket and its buffers
+                # for ever: reset it instead.
+                writer.transport.abort()
             log.info("client %s disconnected", peer)
 
     def _watch(self, conn: _Connection) -> None:

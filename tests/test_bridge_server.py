@@ -636,23 +636,35 @@ def test_a_client_that_never_reads_its_replies_is_closed_after_the_idle_timeout(
         s = socket.socket()
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)  # fills at once
         s.connect(r.addresses[0])
+        wait_until(lambda: bool(r.server._connections))
         s.setblocking(False)
         sent = 0
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:  # until the server stops reading, or closes
-            try:
+        while r.server._connections and time.monotonic() < deadline:
+            try:  # requests until the server stops reading them, and then until it closes
                 sent += s.send(b"1R86\r" * 1000)
             except BlockingIOError:
                 time.sleep(0.01)
             except OSError:
                 break
-            if not r.server._connections:
-                break
-        wait_until(lambda: not r.server._connections)  # closed, its slot free
-        assert sent > 0
+        wait_until(lambda: not r.server._connections)  # its slot is free
+        assert sent > 100 * 1000  # far more than the replies the buffers hold
+        # and its socket is closed, not left holding the replies it never read
+        wait_until(lambda: _reset(s))
         s.close()
     finally:
         r.stop()
+
+
+def _reset(sock: socket.socket) -> bool:
+    """True once the peer has reset ``sock`` (a non-blocking send fails)."""
+    try:
+        sock.send(b"1R86\r")
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
+    return False
 
 
 def test_a_request_in_flight_longer_than_the_idle_timeout_keeps_its_connection() -> None:
