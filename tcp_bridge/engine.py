@@ -361,13 +361,16 @@ class Engine:
             answer = self.shared[job.bus].answer_now(fast)  # type: ignore[index]
             if answer is not BUSY:
                 return answer  # type: ignore[no-any-return]
+            tried: Optional[Job] = job  # queued below without trying its PDOs again
+        else:
+            tried = None
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.job_timeout
         plan = steps(job)
         try:
             batch = next(plan)
             while True:
-                futures = [self._submit(j) for j in batch]
+                futures = [self._submit(j, fast=j is not tried) for j in batch]
                 if all(f.done() for f in futures):  # answered at once (a read from PDOs)
                     outcomes: Sequence[Outcome] = [_result(f) for f in futures]
                 else:
@@ -404,13 +407,13 @@ class Engine:
                 if bus in self.shared:
                     self.shared[bus].close_groups()
 
-    def _submit(self, job: Job) -> "asyncio.Future[bytes]":
+    def _submit(self, job: Job, *, fast: bool = True) -> "asyncio.Future[bytes]":
         future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
         if job.bus is not None:
             refusal = self._refusal(job)
             if refusal is None:
                 return self.shared[job.bus].submit(self._guarded(job), job.share,
-                                                   fast=self._from_pdo(job))
+                                                   fast=self._from_pdo(job) if fast else None)
             future.set_exception(refusal)  # NAK at once: nothing queued, nothing sent
             return future
         try:

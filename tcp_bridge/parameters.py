@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 _DEVICE_CODES: Final = {int(code): code for code in DeviceCode}
 
 
-@lru_cache(maxsize=256)
+@lru_cache(maxsize=256, typed=True)
 def _scaling(factor: int, inversion: Optional[int], offset: Optional[int]) -> Scaling:
     """The scaling of stored 22 and 25 (built for every position poll: kept)."""
     user = None if offset is None else from_stored(COMMANDS[25], offset, factor)

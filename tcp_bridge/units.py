@@ -175,12 +175,12 @@ class Scaling:
 
 # R12 is polled many times a second and a position at rest does not change: the
 # decimal arithmetic (~10 us) runs once per (scaling, raw value). Bounded.
-@lru_cache(maxsize=1024)
+@lru_cache(maxsize=1024, typed=True)
 def _position_from_drive(scaling: Scaling, raw: int) -> float:
     return float(_dec(raw) * scaling.inversion / scaling.factor + _dec(scaling.offset))
 
 
-@lru_cache(maxsize=256)
+@lru_cache(maxsize=256, typed=True)
 def scaling_of(factor: int, inversion: int, offset: float,
                units: DriveUnits = DriveUnits()) -> Scaling:
     """``Scaling(...)``, one instance per set of values: it is immutable, and an
@@ -188,7 +188,7 @@ def scaling_of(factor: int, inversion: int, offset: float,
     return Scaling(factor, inversion, offset, units)
 
 
-drive_units_of = lru_cache(maxsize=64)(DriveUnits)  # the same, for DriveUnits
+drive_units_of = lru_cache(maxsize=64, typed=True)(DriveUnits)  # the same, for DriveUnits
 
 
 def stored_parameter(user: Number, factor: int) -> int:

@@ -211,6 +211,22 @@ def test_the_server_path_answers_pdo_reads_without_the_bus_thread(rig: Rig) -> N
     assert shared.fast == before + 2 and rig.uploads == uploads
 
 
+def test_a_poll_whose_pdo_does_not_count_tries_it_once_then_reads_by_sdo(rig: Rig) -> None:
+    rig.until(lambda: rig.feed(2).value(0x6041) is not None, "a first PDO")
+    port = rig.engine.axes[1].port
+    assert port is not None
+    tries: List[int] = []
+    pdo_only = port.pdo_only
+    port.pdo_only = lambda plan: (tries.append(1), pdo_only(plan))[1]  # type: ignore[method-assign]
+    rig.feed(2).note_transfer((0x6041, 0))  # an SDO read of the statusword: PDOs before it are old
+    uploads = rig.uploads
+
+    async def poll() -> bytes:
+        return await rig.engine.execute(parse_request(b"1R10"))
+    assert decode_reply(asyncio.run(poll())).status is Status.ACK
+    assert len(tries) == 1 and rig.uploads == uploads + 1
+
+
 def test_a_pdo_older_than_the_bound_falls_back_to_sdo(rig: Rig) -> None:
     rig.until(lambda: rig.feed(2).value(0x6041) is not None, "a first PDO")
     assert polls_from_pdos(rig, "1R10", 5) == 0
