@@ -199,3 +199,34 @@ def test_the_ticker_sleeps_while_every_drive_is_quiet(bus) -> None:  # type: ign
     # A ticker waking every 2 ms looks 500 times a second; a quiet drive needs a
     # look every 10 ms (QUIET) and at its event timer. A busy machine looks less.
     assert 0 < len(calls) < 300
+
+
+def test_an_event_timer_keeps_its_period_on_the_grid() -> None:
+    from epos_link.simulator.core import SimulatedDrive
+    from epos_link.simulator.pdo import GRID
+
+    for timer_ms, late in ((50, 0.0001), (50, 0.002), (20, 0.0007), (33, 0.0013)):
+        now = 10.0013
+        drive = SimulatedDrive(2, lambda: now)
+        store = drive.store
+        store.write_value(0x1800, 1, 0x80000182)
+        store.write_value(0x1A00, 0, 0)
+        store.write_value(0x1A00, 1, 0x60410010)
+        store.write_value(0x1A00, 0, 1)
+        store.write_value(0x1800, 5, timer_ms)
+        store.write_value(0x1800, 1, 0x182)
+        sent = []
+        for _ in range(400):  # a quiet drive; the ticker wakes ``late`` after each sample time
+            if drive.tpdo.due(now):
+                sent.append(now)
+            now = max(drive.tpdo.next_sample, now) + late
+        periods = [b - a for a, b in zip(sent, sent[1:])]
+        timer = timer_ms / 1000
+        assert len(periods) > 10
+        # The first sample (entering Operational) is off the grid: its period ends at
+        # the nearest grid instant. From then on a multiple of the grid keeps its
+        # period, any other stays within a grid step of it.
+        assert abs(periods[0] - timer) <= GRID / 2 + late + 1e-9
+        bound = 1e-9 if timer_ms % 5 == 0 else GRID + 1e-9
+        assert all(abs(p - timer) <= bound for p in periods[1:]), periods[:5]
+        assert abs((sent[-1] - sent[0]) / (len(sent) - 1) - timer) < 0.05 * GRID  # no drift

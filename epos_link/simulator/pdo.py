@@ -34,10 +34,15 @@ Transmission, with what is **chosen** where CiA 301 leaves it to the device:
   that got no SDO write since, is sampled only every ``QUIET`` seconds (10 ms)
   and when an event timer is due (chosen, to keep idle drives cheap: what
   changes at rest without a write, such as the end of the self test or a fault
-  injected through the Python API, is sent up to 10 ms late). These samples
-  fall on a common grid of the clock (``GRID``, 5 ms), so that the ticker
-  wakes once for all quiet drives, not once for each: an event timer PDO may
-  go out up to 5 ms after its period (chosen);
+  injected through the Python API, is sent up to QUIET + GRID + one tick
+  late, about 17 ms). These samples fall on a common grid of the clock
+  (``GRID``, 5 ms), so that the ticker wakes once for all quiet drives, not
+  once for each; so does an event timer: its PDO goes out at the grid instant
+  nearest to the end of its period (plus the ticker's own lateness), and the
+  next period ends one period after the end of this one, not after its
+  sending: a period that is a multiple of 5 ms (the bridge's 50 ms) is kept
+  to the ticker's lateness, any other within 5 ms, and on average exactly
+  (chosen); a change sent starts the period again (CiA 301 7.2.2.2.1);
 * sampled and sent under the drive's lock: a PDO received after the answer to
   an SDO write shows the drive after that write (the order the bridge's PDO
   reads rely on, ``tcp_bridge.pdo_status``).
@@ -76,6 +81,7 @@ IDLE_WAIT: Final = 0.5  # seconds the ticker sleeps while no drive is Operationa
 class _Sent:
     data: Optional[bytes] = None
     at: float = float("-inf")
+    due: float = float("-inf")  # when the event timer wants it sent again (exact)
 
 
 @dataclass(frozen=True)
@@ -176,7 +182,7 @@ class TransmitPdos:
         self._plans = None
         self._next_sample = float("-inf")
         for sent in self._sent.values():
-            sent.data, sent.at = None, float("-inf")
+            sent.data, sent.at, sent.due = None, float("-inf"), float("-inf")
 
     def _plan(self) -> Tuple[_Plan, ...]:
         get = self.store.get_int
@@ -198,20 +204,30 @@ class TransmitPdos:
             self._plans = self._plan()
         out: List[Tuple[int, bytes]] = []
         get = self.store.get
-        quiet, next_sample = True, now + QUIET
+        quiet, next_sample = True, math.ceil((now + QUIET) / GRID) * GRID
         for plan in self._plans:
             data = b"".join(var.encode_raw(get(var.index, var.subindex))[:size]
                             for var, size in plan.objects)
             sent = self._sent[plan.number]
             quiet = quiet and data == sent.data
             changed = data != sent.data and now - sent.at >= plan.inhibit
-            if changed or (plan.timer > 0 and now - sent.at >= plan.timer):
-                sent.data, sent.at = data, now
+            timed = plan.timer > 0 and now >= _on_grid(sent.due)
+            if changed or timed:
+                # A change starts the period again; the timer's own sending keeps
+                # to its schedule, so that the grid never makes the period drift.
+                due = now + plan.timer if changed or sent.due + plan.timer <= now \
+                    else sent.due + plan.timer
+                sent.data, sent.at, sent.due = data, now, due
                 out.append((plan.cob_id, data))
             if plan.timer > 0:
-                next_sample = min(next_sample, sent.at + plan.timer)
-        self._next_sample = math.ceil(next_sample / GRID) * GRID if quiet else float("-inf")
+                next_sample = min(next_sample, _on_grid(sent.due))
+        self._next_sample = next_sample if quiet else float("-inf")
         return out
+
+
+def _on_grid(t: float) -> float:
+    """The instant of the grid nearest to ``t`` (module docstring: GRID)."""
+    return round(t / GRID) * GRID if math.isfinite(t) else t
 
 
 class PdoTicker:
@@ -252,11 +268,12 @@ class PdoTicker:
                 self._wake.clear()
                 next_at = time.monotonic()
                 continue
+            now = self._clock()  # one instant for all: their next samples coincide
             for drive in drives:
                 send = getattr(drive, "send_pdos", None)
                 if send is not None:
                     try:
-                        send(self._clock())
+                        send(now)
                     except can.CanError:
                         return  # the bus is closed: the simulator is closing
             next_at += self.tick
