@@ -37,7 +37,7 @@ clients do), so the clients do not share the bridge's interpreter lock.
      p50 under 1 ms, fewer than 0.1 SDO transfers per command. The simulator
      runs in the bridge's process (a python-can virtual bus does not cross
      processes), so it shares the interpreter lock with the bridge (its PDO
-     ticker samples the 8 idle drives every 10 ms on a common 5 ms grid). The
+     ticker samples the 8 idle drives every 10-15 ms on a common 5 ms grid). The
      rate without PDOs is set by an SDO round trip across three threads (bus
      worker, the simulated drive's and the bridge's CAN notifiers), so it
      varies with the machine's scheduling more than the PDO row does; compare
