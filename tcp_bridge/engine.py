@@ -112,7 +112,7 @@ def steps(job: Job) -> Steps:
 
     Yields batches of jobs to run in parallel and receives their outcomes (the
     reply bytes or the exception, in batch order); returns the reply or raises
-    the first failure. :meth:`Engine.run` (bus workers) and
+    the first failure. :meth:`Engine.execute` (bus workers) and
     :meth:`Engine.execute_sync` (caller's thread) are thin drivers over it.
     """
     if not job.gated:
@@ -347,23 +347,28 @@ class Engine:
 
     async def execute(self, request: Request) -> bytes:
         """Prepare and run ``request``; returns the reply, raises on failure."""
-        return await self.run(self.prepare(request))
+        job = self.prepare(request)
+        answer = self._at_once(job)  # no coroutine, no future: the status poll's path
+        if answer is not BUSY:
+            return answer  # type: ignore[no-any-return]
+        return await self._queued(job, job if job.share is not None else None)
 
-    async def run(self, job: Job) -> bytes:
+    def _at_once(self, job: Job) -> Any:
+        """The reply of a job that waits for nothing, else BUSY: one without a drive, or
+        a status poll answered from PDOs (shared_reads rule 5), the common case of many
+        polling clients."""
         if job.share is None:
             self._close_shared(job)
         if job.bus is None and not job.companions:
-            return job()  # nothing to wait for: answered on the loop
+            return job()
         fast = self._from_pdo(job)
-        if fast is not None and self._refusal(job) is None:
-            # A status poll answered from PDOs (shared_reads rule 5), the common case
-            # of many polling clients: no future, no task switch.
-            answer = self.shared[job.bus].answer_now(fast)  # type: ignore[index]
-            if answer is not BUSY:
-                return answer  # type: ignore[no-any-return]
-            tried: Optional[Job] = job  # queued below without trying its PDOs again
-        else:
-            tried = None
+        if fast is None or self._refusal(job) is not None:
+            return BUSY
+        return self.shared[job.bus].answer_now(fast)
+
+    async def _queued(self, job: Job, tried: Optional[Job]) -> bytes:
+        """Run ``job`` on the bus workers; ``tried``: a read whose PDOs did not count
+        (queued without trying them a second time)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.job_timeout
         plan = steps(job)

@@ -40,7 +40,7 @@ Rules not spelled out by the spec, chosen here:
 from __future__ import annotations
 
 import logging
-from typing import Callable, Dict, Final, List, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Final, List, Optional, Tuple, Union
 
 from .axes import AxisConfig, DeviceCode, parameter_spec, to_stored
 from .commands import CommandKind, CommandSpec, ObjectRef, Quantity, SdoSelector
@@ -136,6 +136,7 @@ class AxisOps:
         self.drive = Cia402(port, timing, **cia402_options) if port is not None else None  # type: ignore[arg-type]
         self.moving_ack = 0  # command 86: 1 once the drive accepted a move
         self.velocity_exponent: Optional[int] = None  # EPOS4 60A9h prefix, once read
+        self._scaling_memo: Optional[Tuple[Tuple[Any, ...], Scaling]] = None
         self.unit_error: Optional[str] = None
         # Profile objects of a slave that followed its master's profile, with the
         # values to put back before it moves on its own (tcp_bridge.moves).
@@ -176,6 +177,16 @@ class AxisOps:
 
     def scaling(self) -> Scaling:
         """The axis's conversions now; for an EPOS4 with the velocity prefix last read."""
+        # Built for every position poll: kept while 22, 25, 19 and the prefix stay.
+        key = (*self.params.values(self.addr, (22, 25, 19)), self.velocity_exponent)
+        memo = self._scaling_memo  # one tuple: the bus worker may replace it meanwhile
+        if memo is not None and memo[0] == key:
+            return memo[1]
+        scaling = self._build_scaling()
+        self._scaling_memo = (key, scaling)
+        return scaling
+
+    def _build_scaling(self) -> Scaling:
         base = self.params.scaling(self.addr)
         if self.device is not DeviceCode.C_DC_MAXON_EPOS4:
             return base

@@ -95,6 +95,12 @@ class ParameterStore:
             value = self._overrides[addr].get(cmd)
             return self._base[addr].get(cmd) if value is None else value
 
+    def values(self, addr: int, cmds: Tuple[int, ...]) -> Tuple[Optional[int], ...]:
+        """:meth:`get` of several parameters at one instant (one lock)."""
+        with self._lock:
+            overrides, base = self._overrides[addr], self._base[addr]
+            return tuple(base.get(c) if overrides.get(c) is None else overrides[c] for c in cmds)
+
     def user(self, addr: int, cmd: int) -> Optional[Number]:
         stored = self.get(addr, cmd)
         if stored is None:

@@ -276,6 +276,21 @@ def test_a_position_poll_follows_every_change_of_inversion_and_offset() -> None:
     assert ok(engine, "2R12") == "0"  # the same raw value, another axis: its own scaling
 
 
+def test_an_axis_scaling_follows_its_device_code_and_velocity_prefix() -> None:
+    engine, _ = make()
+    ops = engine.axes[1]
+    first = ops.scaling()
+    assert ops.scaling() is first  # kept while nothing it depends on changes
+    ops.velocity_exponent = -3
+    assert ops.scaling().units.velocity_exponent == -3
+    engine.params.set(1, 19, 1)  # another device: no EPOS4 velocity units
+    assert ops.scaling().units.increments_per_revolution is None
+    engine.params.set(1, 19, 5)
+    engine.params.set(1, 25, 2000)  # offset 2 (stored x factor)
+    assert ops.scaling().offset == 2.0 and ops.scaling().units.velocity_exponent == -3
+    assert engine.params.values(1, (19, 25, 22)) == (5, 2000, engine.params.get(1, 22))
+
+
 def test_display_limits_swap_on_an_inverted_axis() -> None:
     engine, nodes = make()
     node = nodes[1]
