@@ -218,12 +218,16 @@ def test_a_poll_whose_pdo_does_not_count_tries_it_once_then_reads_by_sdo(rig: Ri
     tries: List[int] = []
     pdo_only = port.pdo_only
     port.pdo_only = lambda plan: (tries.append(1), pdo_only(plan))[1]  # type: ignore[method-assign]
-    rig.feed(2).note_transfer((0x6041, 0))  # an SDO read of the statusword: PDOs before it are old
+    feed = rig.feed(2)
+    max_age, feed.max_age = feed.max_age, 0.0  # no PDO counts, not even one arriving now
     uploads = rig.uploads
 
     async def poll() -> bytes:
         return await rig.engine.execute(parse_request(b"1R10"))
-    assert decode_reply(asyncio.run(poll())).status is Status.ACK
+    try:
+        assert decode_reply(asyncio.run(poll())).status is Status.ACK
+    finally:
+        feed.max_age = max_age
     assert len(tries) == 1 and rig.uploads == uploads + 1
 
 
