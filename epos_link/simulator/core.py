@@ -45,6 +45,7 @@ from ..codes import ErrorCode, NmtCommand
 from .device import Abort, DeviceProtocol
 from .drive import Drive
 from .nmt import NmtState, next_state
+from .canbus import DEFAULT_BITRATE, sdo_answer_due, wait_until
 from .pdo import TICK, PdoTicker, TransmitPdos
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
@@ -91,13 +92,17 @@ class SimulatedDrive:
             self.wake_ticker()
         self.store.write = write_and_touch  # type: ignore[method-assign]
 
-    def attach(self, node: canopen.LocalNode, network: canopen.Network) -> None:
-        """Serve CAN SDO through ``node`` on ``network``, silent while NMT Stopped."""
+    def attach(self, node: canopen.LocalNode, network: canopen.Network,
+               bitrate: Optional[int] = DEFAULT_BITRATE) -> None:
+        """Serve CAN SDO through ``node`` on ``network``, silent while NMT Stopped; each
+        answer no sooner than the bus at ``bitrate`` carries it (epos_link.simulator.canbus;
+        None: at once)."""
         serve = node.sdo.on_request
 
         def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
             # Table 3-13: no SDO in Stopped, no communication while initialising.
             if self.nmt_state not in (NmtState.STOPPED, NmtState.INITIALISING):
+                wait_until(sdo_answer_due(timestamp, len(data), bitrate))
                 serve(can_id, data, timestamp)
 
         # An instance attribute, set before add_node subscribes it to the bus.
@@ -183,11 +188,13 @@ class Epos4Simulator:
                  clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
                  gateway_timeout: float = 0.3, segment_size: int = 255,
                  initiate_carries_data: bool = True, boot_time: float = 0.0,
-                 pdo_tick: float = TICK) -> None:
+                 pdo_tick: float = TICK, can_bitrate: Optional[int] = DEFAULT_BITRATE) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
         if not boot_time >= 0:
             raise ValueError("boot time must be 0 or more seconds")
+        if can_bitrate is not None and not can_bitrate > 0:
+            raise ValueError("the CAN bit rate must be positive (or None: frames take no time)")
         self.node_id = node_id
         self.boot_time = boot_time
         self._boot_lock = threading.Lock()  # boot timers against close()
@@ -207,7 +214,7 @@ class Epos4Simulator:
             self.drives[nid] = SimulatedDrive(nid, self.clock)
         for nid, sim in self.drives.items():
             sim.boot = self._boot
-            sim.attach(make_local_node(sim.store, nid), self._drive_net)
+            sim.attach(make_local_node(sim.store, nid), self._drive_net, can_bitrate)
         for nid in self.drives:  # powered up: each drive says so (CiA 301 boot-up)
             self._drive_net.send_message(0x700 + nid, b"\x00")
         self._drive_net.subscribe(0, self._on_nmt)
