@@ -41,7 +41,9 @@ clients do), so the clients do not share the bridge's interpreter lock.
      rate without PDOs is set by an SDO round trip across three threads (bus
      worker, the simulated drive's and the bridge's CAN notifiers), so it
      varies with the machine's scheduling more than the PDO row does; compare
-     the two rows of one invocation. A last row for comparison: the same clients on
+     the two rows of one invocation. Each SDO transfer also takes the bus time of
+     its two frames at 1 Mbit/s (222 us, ``epos_link.simulator.canbus``), as on a
+     real bus; a PDO-fed poll takes none. A last row for comparison: the same clients on
      the ``instant`` backend (fake drives that answer at once), the bridge's own
      cost per command that goes through a bus worker thread; a read answered
      from a PDO skips that thread (``tcp_bridge.shared_reads`` rule 5), so the
