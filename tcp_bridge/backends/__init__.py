@@ -16,7 +16,8 @@ there is one command implementation (:mod:`tcp_bridge.engine`).
 canopen    python-can with any interface and channel, a ``canopen.Network``
 epos       an EPOS4 reached by an ``epos_link`` URL, its CAN gateway for the
            other nodes (through ``epos_link.connect_node``)
-sim        the embedded simulated EPOS4 and drives behind it
+sim        the embedded simulated EPOS4 and drives behind it (over the epos path,
+           or on its CAN bus through canopen)
 instant    in-process fake CiA 402 drives that answer at once (tests, bench)
 =========  ==================================================================
 """
@@ -34,7 +35,7 @@ if TYPE_CHECKING:
 BACKENDS: Dict[str, str] = {
     "canopen": "tcp_bridge.backends.canopen_bus:CanopenBackend",
     "epos": "tcp_bridge.backends.epos:EposBackend",
-    "sim": "tcp_bridge.backends.sim:SimBackend",
+    "sim": "tcp_bridge.backends.sim:open_sim",
     "instant": "tcp_bridge.backends.instant:InstantBackend",
 }
 ENTRY_POINT_GROUP = "tcp_bridge.backends"

@@ -9,17 +9,71 @@ chain runs.
 
 Bus options::
 
-    link = "inprocess"   # "inprocess" (sim:// transport, instant) or "pty"
+    link = "inprocess"   # "inprocess" (sim:// transport, instant), "pty" or "can"
     baud = 115200        # with link = "pty": pace the simulated wire like a UART
     timeout = 0.5        # EposClient request timeout
     gateway_timeout = 0.3  # the simulated gateway's SDO timeout for absent nodes
+
+With ``link = "can"`` the bridge reaches every simulated node, the EPOS4 itself
+included, directly on the simulator's virtual CAN bus through the ``canopen``
+backend, as it reaches drives through a CAN adapter: so PDO-fed status can be
+tried without hardware. The ``canopen`` backend's own options apply then
+(:data:`CAN_OPTIONS`: ``pdo = true``, ``eds``, ``sdo_timeout`` ...).
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, Final, Optional, Sequence
 
 from ..axes import AxisConfig, BusConfig, ConfigError
+from .canopen_bus import CanopenBackend
 from .epos import EposBackend
+
+CAN_OPTIONS: Final = ("eds", "sdo_timeout", "sdo_retries", "pdo", "pdo_max_age",
+                      "pdo_event_timer", "pdo_inhibit_time")
+
+
+def open_sim(bus: BusConfig, axes: Sequence[AxisConfig] = ()) -> Any:
+    """The backend registry's factory for ``sim``: over the epos path, or (``link = "can"``)
+    on the simulator's CAN bus."""
+    if bus.options.get("link") == "can":
+        return SimCanBackend(bus, axes)
+    return SimBackend(bus, axes)
+
+
+class SimCanBackend(CanopenBackend):
+    """``link = "can"``: the canopen backend on the embedded simulator's virtual CAN bus."""
+
+    def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = ()) -> None:
+        from epos_link.simulator.core import Epos4Simulator
+
+        options: Dict[str, Any] = dict(bus.options)
+        options.pop("link")
+        can = {key: options.pop(key) for key in CAN_OPTIONS if key in options}
+        node_ids = [a.node_id for a in axes] or [1]
+        gateway = int(options.pop("gateway_node_id", node_ids[0]))
+        gateway_timeout = float(options.pop("gateway_timeout", 0.3))
+        if options:
+            raise ConfigError(f"bus {bus.name}: options {sorted(options)} do not apply to "
+                              f"link = \"can\" (it takes {', '.join(CAN_OPTIONS)})")
+        self.simulator = Epos4Simulator(gateway, [n for n in node_ids if n != gateway],
+                                        gateway_timeout=gateway_timeout)
+        try:
+            super().__init__(BusConfig(bus.name, "canopen", {
+                "interface": "virtual", "channel": self.simulator.channel,
+                "receive_own_messages": False, **can}), axes)
+        except BaseException:
+            self.simulator.close()
+            raise
+
+    def drive(self, node_id: int) -> Any:
+        """The simulated drive model of ``node_id`` (fault injection in tests)."""
+        return self.simulator.drive(node_id)
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self.simulator.close()
 
 
 class SimBackend:
@@ -31,6 +85,10 @@ class SimBackend:
         node_ids = [a.node_id for a in axes] or [1]
         gateway = int(options.pop("gateway_node_id", node_ids[0]))
         link = options.pop("link", "inprocess")
+        misplaced = sorted(key for key in CAN_OPTIONS if key in options)
+        if misplaced:
+            raise ConfigError(f"bus {bus.name}: {', '.join(misplaced)} need link = \"can\" "
+                              "(the canopen backend on the simulator's CAN bus)")
         baud: Optional[int] = options.pop("baud", None)
         timeout = float(options.pop("timeout", 0.5))
         gateway_timeout = float(options.pop("gateway_timeout", 0.3))
@@ -52,7 +110,8 @@ class SimBackend:
                 client = EposClient(SimTransport(self.simulator), gateway_node_id=gateway,
                                     timeout=timeout)
             else:
-                raise ConfigError(f"bus {bus.name}: sim link must be \"inprocess\" or \"pty\"")
+                raise ConfigError(f"bus {bus.name}: sim link must be \"inprocess\", \"pty\" "
+                                  "or \"can\"")
             self.epos = EposBackend(BusConfig(bus.name, "epos", {}), axes, client=client)
         except BaseException:
             self._close_simulator()
