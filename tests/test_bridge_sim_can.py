@@ -56,9 +56,10 @@ def test_without_pdo_the_can_link_reads_by_sdo() -> None:
 
 
 @pytest.mark.parametrize("bus,message", [
-    ({"pdo": True}, "pdo need link = \"can\""),
+    ({"pdo": True}, "pdo only with link = \"can\""),
     ({"link": "can", "baud": 115200}, "['baud'] do not apply to link = \"can\""),
-    ({"link": "serial"}, "sim link must be \"inprocess\", \"pty\" or \"can\""),
+    ({"link": "serial"}, "sim link must be \"inprocess\", \"pty\" or \"can\", not 'serial'"),
+    ({"link": "CAN", "pdo": True}, "sim link must be \"inprocess\", \"pty\" or \"can\", not 'CAN'"),
 ])
 def test_options_in_the_wrong_place_are_one_config_error(bus: dict, message: str) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):

@@ -85,9 +85,12 @@ class SimBackend:
         node_ids = [a.node_id for a in axes] or [1]
         gateway = int(options.pop("gateway_node_id", node_ids[0]))
         link = options.pop("link", "inprocess")
+        if link not in ("inprocess", "pty"):
+            raise ConfigError(f"bus {bus.name}: sim link must be \"inprocess\", \"pty\" "
+                              f"or \"can\", not {link!r}")
         misplaced = sorted(key for key in CAN_OPTIONS if key in options)
         if misplaced:
-            raise ConfigError(f"bus {bus.name}: {', '.join(misplaced)} need link = \"can\" "
+            raise ConfigError(f"bus {bus.name}: {', '.join(misplaced)} only with link = \"can\" "
                               "(the canopen backend on the simulator's CAN bus)")
         baud: Optional[int] = options.pop("baud", None)
         timeout = float(options.pop("timeout", 0.5))
@@ -109,9 +112,8 @@ class SimBackend:
 
                 client = EposClient(SimTransport(self.simulator), gateway_node_id=gateway,
                                     timeout=timeout)
-            else:
-                raise ConfigError(f"bus {bus.name}: sim link must be \"inprocess\", \"pty\" "
-                                  "or \"can\"")
+            else:  # pragma: no cover - refused above
+                raise AssertionError(link)
             self.epos = EposBackend(BusConfig(bus.name, "epos", {}), axes, client=client)
         except BaseException:
             self._close_simulator()
