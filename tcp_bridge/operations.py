@@ -48,7 +48,7 @@ from .errors import DeviceFailure, InvalidCommand
 from .motion import MODES_DISPLAY, STATUSWORD, Cia402, Mode, State, Sw, Timing, Why
 from .parameters import ParameterStore
 from .sdo import NodeSilent, SdoPort, object_type
-from .units import Number, Scaling, drive_units_of, scaling_of, velocity_exponent
+from .units import DriveUnits, Number, Scaling, velocity_exponent
 
 log = logging.getLogger(__name__)
 
@@ -194,8 +194,8 @@ class AxisOps:
         if ipr is None:
             raise InvalidCommand(f"axis {self.addr}: device 5 needs increments_per_revolution "
                                  "in the axis table")
-        units = drive_units_of(ipr, self.velocity_exponent or 0)
-        return scaling_of(base.factor, base.inversion, base.offset, units)
+        units = DriveUnits(ipr, self.velocity_exponent or 0)
+        return Scaling(base.factor, base.inversion, base.offset, units)
 
     def drive_scaling(self, quantity: Quantity = Quantity.VELOCITY) -> Scaling:
         """:meth:`scaling` on the bus worker: reads 60A9h first when a velocity needs it."""

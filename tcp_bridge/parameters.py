@@ -31,25 +31,16 @@ import logging
 import os
 import tempfile
 import threading
-from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Dict, Final, Optional, Tuple
 
 from .axes import (DEFAULTS, PARAMETER_NAMES, AxisTable, ConfigError, DeviceCode, from_stored,
                    to_stored)
 from .commands import COMMANDS
-from .units import Number, Scaling, scaling_of
+from .units import Number, Scaling
 
 log = logging.getLogger(__name__)
 _DEVICE_CODES: Final = {int(code): code for code in DeviceCode}
-
-
-@lru_cache(maxsize=256, typed=True)
-def _scaling(factor: int, inversion: Optional[int], offset: Optional[int]) -> Scaling:
-    """The scaling of stored 22 and 25 (built for every position poll: kept)."""
-    user = None if offset is None else from_stored(COMMANDS[25], offset, factor)
-    return scaling_of(factor, -1 if inversion == -1 else 1,
-                      float(user) if user is not None else 0.0)
 
 
 class ParameterStore:
@@ -133,8 +124,11 @@ class ParameterStore:
 
     def scaling(self, addr: int) -> Scaling:
         """Conversion parameters of the axis now: factor, inversion (22), offset (25)."""
-        return _scaling(self.table.axes[addr].position_factor, self.get(addr, 22),
-                        self.get(addr, 25))
+        axis = self.table.axes[addr]
+        inversion = self.get(addr, 22)
+        offset = self.user(addr, 25)
+        return Scaling(axis.position_factor, -1 if inversion == -1 else 1,
+                       float(offset) if offset is not None else 0.0)
 
     def device(self, addr: int) -> DeviceCode:
         return _DEVICE_CODES.get(self.get(addr, 19), DeviceCode.C_DC_NOT_DEFINED)  # type: ignore[arg-type]

@@ -41,8 +41,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 from decimal import ROUND_HALF_UP, Decimal
+from functools import lru_cache
 from typing import Final, Optional, Tuple, Union
 
 from .commands import INT32, CommandSpec, ValueType
@@ -178,17 +178,6 @@ class Scaling:
 @lru_cache(maxsize=1024, typed=True)
 def _position_from_drive(scaling: Scaling, raw: int) -> float:
     return float(_dec(raw) * scaling.inversion / scaling.factor + _dec(scaling.offset))
-
-
-@lru_cache(maxsize=256, typed=True)
-def scaling_of(factor: int, inversion: int, offset: float,
-               units: DriveUnits = DriveUnits()) -> Scaling:
-    """``Scaling(...)``, one instance per set of values: it is immutable, and an
-    axis's scaling is built for every position poll (~15 us with its checks)."""
-    return Scaling(factor, inversion, offset, units)
-
-
-drive_units_of = lru_cache(maxsize=64, typed=True)(DriveUnits)  # the same, for DriveUnits
 
 
 def stored_parameter(user: Number, factor: int) -> int:
