@@ -22,7 +22,7 @@ tried without hardware. The ``canopen`` backend's own options apply then
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Final, Optional, Sequence
+from typing import Any, Dict, Final, List, Optional, Sequence, Tuple
 
 from ..axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import CanopenBackend
@@ -30,6 +30,15 @@ from .epos import EposBackend
 
 CAN_OPTIONS: Final = ("eds", "sdo_timeout", "sdo_retries", "pdo", "pdo_max_age",
                       "pdo_event_timer", "pdo_inhibit_time")
+
+
+def _pop_nodes(options: Dict[str, Any], axes: Sequence[AxisConfig]) -> Tuple[int, List[int], float]:
+    """(the EPOS4's node id, the drives behind it, the gateway's timeout) of a sim bus,
+    taken out of ``options``: the first axis is the EPOS4 unless ``gateway_node_id``."""
+    node_ids = [a.node_id for a in axes] or [1]
+    gateway = int(options.pop("gateway_node_id", node_ids[0]))
+    gateway_timeout = float(options.pop("gateway_timeout", 0.3))
+    return gateway, [n for n in node_ids if n != gateway], gateway_timeout
 
 
 def open_sim(bus: BusConfig, axes: Sequence[AxisConfig] = ()) -> Any:
@@ -49,14 +58,11 @@ class SimCanBackend(CanopenBackend):
         options: Dict[str, Any] = dict(bus.options)
         options.pop("link")
         can = {key: options.pop(key) for key in CAN_OPTIONS if key in options}
-        node_ids = [a.node_id for a in axes] or [1]
-        gateway = int(options.pop("gateway_node_id", node_ids[0]))
-        gateway_timeout = float(options.pop("gateway_timeout", 0.3))
+        gateway, drives, gateway_timeout = _pop_nodes(options, axes)
         if options:
             raise ConfigError(f"bus {bus.name}: options {sorted(options)} do not apply to "
                               f"link = \"can\" (it takes {', '.join(CAN_OPTIONS)})")
-        self.simulator = Epos4Simulator(gateway, [n for n in node_ids if n != gateway],
-                                        gateway_timeout=gateway_timeout)
+        self.simulator = Epos4Simulator(gateway, drives, gateway_timeout=gateway_timeout)
         try:
             super().__init__(BusConfig(bus.name, "canopen", {
                 "interface": "virtual", "channel": self.simulator.channel,
@@ -82,8 +88,7 @@ class SimBackend:
         from epos_link.simulator.core import Epos4Simulator
 
         options: Dict[str, Any] = dict(bus.options)
-        node_ids = [a.node_id for a in axes] or [1]
-        gateway = int(options.pop("gateway_node_id", node_ids[0]))
+        gateway, drives, gateway_timeout = _pop_nodes(options, axes)
         link = options.pop("link", "inprocess")
         if link not in ("inprocess", "pty"):
             raise ConfigError(f"bus {bus.name}: sim link must be \"inprocess\", \"pty\" "
@@ -94,11 +99,9 @@ class SimBackend:
                               "(the canopen backend on the simulator's CAN bus)")
         baud: Optional[int] = options.pop("baud", None)
         timeout = float(options.pop("timeout", 0.5))
-        gateway_timeout = float(options.pop("gateway_timeout", 0.3))
         if options:
             raise ConfigError(f"bus {bus.name}: unknown sim options {sorted(options)}")
-        self.simulator = Epos4Simulator(gateway, [n for n in node_ids if n != gateway],
-                                        gateway_timeout=gateway_timeout)
+        self.simulator = Epos4Simulator(gateway, drives, gateway_timeout=gateway_timeout)
         self.link: Any = None
         try:
             if link == "pty":
