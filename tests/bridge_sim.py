@@ -29,7 +29,7 @@ from tcp_bridge.backends.epos import EposBackend
 from tcp_bridge.engine import Engine
 from tcp_bridge.protocol import Reply, Status
 from tcp_bridge.server import BridgeServer, ServerOptions
-from tests.helpers import psi_ask
+from tests.helpers import psi_ask, wait_until
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,
           "poll_interval": 0.002}
@@ -198,10 +198,7 @@ class SimBridge:
         return float(self.now(node).velocity_increments)
 
     def wait_until(self, what: Callable[[], bool], timeout: float = 10.0, why: str = "") -> None:
-        deadline = time.monotonic() + timeout
-        while not what():
-            assert time.monotonic() < deadline, why or "condition never became true"
-            time.sleep(0.01)
+        wait_until(what, timeout, why or "condition never became true")
 
 
 def opcodes(messages: Iterable[Message]) -> List[str]:

@@ -1,6 +1,8 @@
-"""Shared test habits: feed a stream three ways (h11's test_io style); ask a PSI bridge."""
+"""Shared test habits: feed a stream three ways (h11's test_io style); ask a PSI bridge;
+wait for a condition another thread brings about."""
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING, Callable, Iterator
 
 if TYPE_CHECKING:
@@ -55,3 +57,13 @@ def psi_ask(sock: "socket.socket", line: str) -> "Reply":
         assert chunk, "bridge closed the connection"
         data += chunk
     return decode_reply(data)
+
+
+def wait_until(what: Callable[[], object], timeout: float = 10.0,
+               why: str = "condition never became true") -> None:
+    """Poll ``what`` until it is true; fail with ``why`` after ``timeout`` seconds, a bound
+    far above what the condition needs (tests never assert tight wall-clock bounds)."""
+    deadline = time.monotonic() + timeout
+    while not what():
+        assert time.monotonic() < deadline, f"{why} (within {timeout} s)"
+        time.sleep(0.005)

@@ -23,6 +23,7 @@ from tcp_bridge.backends.canopen_bus import CanopenBackend
 from tcp_bridge.backends.pdo_status import PdoSettings, StatusFeed
 from tcp_bridge.engine import Engine, build_engine
 from tcp_bridge.protocol import Status, decode_reply, parse_request
+from tests.helpers import wait_until
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.02,
           "poll_interval": 0.002}
@@ -156,10 +157,7 @@ class Rig:
         return self.backend.pdo.feeds[node]
 
     def until(self, condition: Callable[[], bool], what: str, timeout: float = 5.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < deadline, f"{what} not within {timeout} s"
-            time.sleep(0.01)
+        wait_until(condition, timeout, f"no {what}")
 
     def close(self) -> None:
         self.engine.close()

@@ -3,7 +3,6 @@ virtual CAN bus, so PDO-fed status can be tried without a CAN adapter (issue 14)
 from __future__ import annotations
 
 import asyncio
-import time
 from pathlib import Path
 
 import pytest
@@ -12,6 +11,7 @@ from tcp_bridge.axes import AxisTable, ConfigError, simulated_increments_per_rev
 from tcp_bridge.backends.sim import SimCanBackend
 from tcp_bridge.engine import build_engine
 from tcp_bridge.protocol import Status, decode_reply, parse_request
+from tests.helpers import wait_until
 
 
 def table(**bus: object) -> AxisTable:
@@ -28,10 +28,8 @@ def test_status_polls_come_from_pdos_of_the_simulated_drives() -> None:
     try:
         backend = engine.backends[0]
         assert isinstance(backend, SimCanBackend)
-        deadline = time.monotonic() + 10
-        while not all(f.value(0x6041) is not None for f in backend.pdo.feeds.values()):
-            assert time.monotonic() < deadline, "no PDOs from the simulated drives"
-            time.sleep(0.01)
+        wait_until(lambda: all(f.value(0x6041) is not None for f in backend.pdo.feeds.values()),
+                   why="no PDOs from the simulated drives")
         shared = engine.shared["can1"]
         for axis in (1, 2, 3):  # the EPOS4 itself too: it is a node on its own CAN bus
             reply = decode_reply(engine.execute_sync(parse_request(b"%dR10" % axis)))

@@ -14,7 +14,6 @@ its notifier thread, so the tests wait for their effect with a deadline.
 from __future__ import annotations
 
 import struct
-import time
 from collections.abc import Callable, Iterator
 
 import can
@@ -31,16 +30,14 @@ from epos_link.simulator.nmt import NmtState
 from epos_link.simulator.od import EDS_PATH
 from epos_link.simulator.safety import EventKind
 from epos_link.transports import open_transport
+from tests.helpers import wait_until
 
 REMOTE = 0x0200
 WAIT = 5.0  # seconds: a bound for the bus thread, 100x what it needs
 
 
 def eventually(check: Callable[[], bool], what: str) -> None:
-    deadline = time.monotonic() + WAIT
-    while not check():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.005)
+    wait_until(check, WAIT, f"timed out waiting for {what}")
 
 
 @pytest.fixture

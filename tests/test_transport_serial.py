@@ -1,10 +1,11 @@
 """The pyserial transport over a real TCP socket, a pseudo-terminal, and pyserial's own URLs."""
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
-from typing import Iterator, Tuple
+from typing import Iterator, List, Tuple
 
 import pytest
 
@@ -209,30 +210,48 @@ def test_read_some_sleeps_while_the_wanted_bytes_are_on_the_wire_without_vmin(
     assert pauses == []
 
 
+@contextlib.contextmanager
+def watched(client: EposClient) -> Iterator[Tuple[List[int], List[int]]]:
+    """(VMIN values the serial transport sets, bytes of each read it wakes up for)."""
+    import epos_link.transports.serial as serial_module
+
+    transport = client.transport
+    assert isinstance(transport, SerialTransport)
+    sets: List[int] = []
+    reads: List[int] = []
+    set_vmin, read_fd = serial_module._set_vmin, transport._read_fd
+
+    def setting(fd: int, vmin: int) -> bool:
+        sets.append(vmin)
+        return set_vmin(fd, vmin)
+
+    def reading(n: int, t: float) -> bytes:
+        data = read_fd(n, t)
+        reads.append(len(data))
+        return data
+
+    serial_module._set_vmin = setting
+    transport._read_fd = reading  # type: ignore[method-assign]
+    try:
+        yield sets, reads
+    finally:
+        serial_module._set_vmin = set_vmin
+        transport._read_fd = read_fd  # type: ignore[method-assign]
+
+
 def test_status_reads_wake_once_per_answer_that_comes_in_one_piece() -> None:
     # A USB-RS232 adapter hands an answer over in one USB packet: then a status
     # poll (ReadObject, guide 2.1.1.1: 14 bytes) is read by one wake-up and the
     # terminal's settings stay put from one poll to the next. That matters there:
     # on an FTDI adapter each tcsetattr is a USB control transfer (Linux
     # ftdi_sio.c, ftdi_set_termios sets the flow control every time).
-    import epos_link.transports.serial as serial_module
-
     with PtyResponder({REQUEST: ANSWER}) as dev:
         client = EposClient(open_serial(dev.path, baudrate=115200), timeout=5.0)
         try:
             client.read_object(1, 0x6064, 0)  # warm-up: VMIN settles
-            transport = client.transport
-            assert isinstance(transport, SerialTransport)
-            sets: list = []
-            reads: list = []
-            set_vmin, read_fd = serial_module._set_vmin, transport._read_fd
-            serial_module._set_vmin = lambda fd, vmin: sets.append(vmin) or set_vmin(fd, vmin)
-            transport._read_fd = lambda n, t: reads.append(n) or read_fd(n, t)  # type: ignore
-            try:
+            with watched(client) as (sets, reads):
                 for _ in range(10):
                     assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
-            finally:
-                serial_module._set_vmin = set_vmin
             assert sets == [], f"{len(sets)} termios changes for 10 reads: {sets}"
             assert len(reads) == 10, f"{len(reads)} wake-ups for 10 answers"
         finally:
@@ -243,7 +262,6 @@ def test_an_answer_that_trickles_in_wakes_the_reader_just_before_its_last_bytes(
     # A UART (here the simulator, paced at 115200 Bd) delivers byte by byte: the
     # first wake-up comes WAKE_EARLY bytes before the answer's end, the second
     # with its last byte; never one per byte.
-    import epos_link.transports.serial as serial_module
     from epos_link.client import WAKE_EARLY
     from epos_link.simulator.core import Epos4Simulator
     from epos_link.simulator.link import LinkOptions, PtyLink
@@ -253,24 +271,9 @@ def test_an_answer_that_trickles_in_wakes_the_reader_just_before_its_last_bytes(
     client = EposClient.open(link.path, baudrate=115200, gateway_node_id=1)
     try:
         client.read_object(0, 0x6041, 0)  # warm-up
-        transport = client.transport
-        assert isinstance(transport, SerialTransport)
-        sets: list = []
-        got: list = []
-        set_vmin, read_fd = serial_module._set_vmin, transport._read_fd
-        serial_module._set_vmin = lambda fd, vmin: sets.append(vmin) or set_vmin(fd, vmin)
-
-        def reading(n: int, t: float) -> bytes:
-            data = read_fd(n, t)
-            got.append(len(data))
-            return data
-
-        transport._read_fd = reading  # type: ignore[method-assign]
-        try:
+        with watched(client) as (sets, got):
             for _ in range(10):
                 client.read_object(0, 0x6041, 0)
-        finally:
-            serial_module._set_vmin = set_vmin
         assert len(got) <= 20, f"{len(got)} wake-ups for 10 answers: {got}"
         assert sum(got) == 10 * 14
         # Woken at 12 bytes (or a little later: 13), then VMIN = what is left.
@@ -306,7 +309,9 @@ def test_an_answer_after_noise_with_a_false_sync_is_read_when_it_arrives() -> No
     writer.start()
     try:
         started = time.monotonic()
-        assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
+        with watched(client) as (sets, _):
+            assert client.read_object(1, 0x6064, 0) == (1000).to_bytes(4, "little")
+        assert max(sets, default=0) <= len(ANSWER)  # never waits for the false frame's bytes
         assert time.monotonic() - started < 2.5  # 100x the expected; the whole timeout is 5 s
     finally:
         writer.join()
