@@ -29,7 +29,7 @@ clients do), so the clients do not share the bridge's interpreter lock.
    * the ``epos`` backend over a pty at 115200 baud, all 8 clients on one axis
      (R10), once for the EPOS4 itself and once for a drive behind its gateway:
      identical reads waiting in the queue share one transfer
-     (``tcp_bridge.shared_reads``). Goal: at least 5x the 245 commands/s
+     (``tcp_bridge.bus.shared_reads``). Goal: at least 5x the 245 commands/s
      measured before shared reads (issue 14);
    * the ``canopen`` backend on the simulator's virtual CAN bus, 8 axes, each
      client on its own axis alternating R10 and R12, without and with
@@ -46,7 +46,7 @@ clients do), so the clients do not share the bridge's interpreter lock.
      real bus; a PDO-fed poll takes none. A last row for comparison: the same clients on
      the ``instant`` backend (fake drives that answer at once), the bridge's own
      cost per command that goes through a bus worker thread; a read answered
-     from a PDO skips that thread (``tcp_bridge.shared_reads`` rule 5), so the
+     from a PDO skips that thread (``tcp_bridge.bus.shared_reads`` rule 5), so the
      PDO row can be faster than this one.
 
 Figures are medians over ``--runs`` runs; after each row, whether each goal is
@@ -65,9 +65,9 @@ import time
 from typing import Any, Dict, List, Sequence, Tuple
 
 from epos_link.messages import ReadObject, ReadObjectAnswer
-from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
+from tcp_bridge.tables.axes import AxisTable, simulated_increments_per_revolution
 from tcp_bridge.engine import Engine, build_engine
-from tcp_bridge.protocol import REPLY_SIZE, parse_request
+from tcp_bridge.wire import REPLY_SIZE, parse_request
 from tcp_bridge.server import BridgeServer, ServerOptions
 
 INSTANT_REQUESTS = ["{a}R10", "{a}R12", "{a}S02=1.5", "{a}R82"]
@@ -238,7 +238,7 @@ def bench_sim(seconds: float, runs: int, baud: int) -> None:
 
     Eight axes (the EPOS4 and seven drives behind its gateway), each client
     polling its own axis: no two queued requests are alike, so nothing is
-    shared (tcp_bridge/shared_reads.py) and every command is its own
+    shared (tcp_bridge/bus/shared_reads.py) and every command is its own
     ReadObject; with 8 clients the bus is never idle, which is what the wire
     limit is about. One client waits for each reply, so its rate also pays
     the TCP round trip.

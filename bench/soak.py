@@ -47,7 +47,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from tcp_bridge.errors import MalformedReply  # noqa: E402
-from tcp_bridge.protocol import REPLY_SIZE, Reply, Status, decode_reply  # noqa: E402
+from tcp_bridge.wire import REPLY_SIZE, Reply, Status, decode_reply  # noqa: E402
 
 STEP = 1.0  # mm per relative move
 TOLERANCE = 0.0005  # mm: half an increment at position factor 1000

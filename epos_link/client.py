@@ -190,7 +190,7 @@ class EposClient:
         # Called (on the calling thread) each time the client starts to wait on the
         # link: once a request frame has been written (its answer takes at least the
         # request's wire time), and before it waits for a late answer. A caller may
-        # use that time (tcp_bridge.workers hands a finished reply to its event loop).
+        # use that time (tcp_bridge.bus.workers hands a finished reply to its event loop).
         self.on_wait: Optional[Callable[[], None]] = None
         # Encoded ReadObject frames and their names: the hot path encodes nothing.
         self._read_frames: dict[tuple[int, int, int], tuple[bytes, str]] = {}

@@ -32,12 +32,12 @@ import logging
 import sys
 from typing import Any, Callable, Dict, List, Optional
 
-from .axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
+from .tables.axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
 from .errors import BridgeError, DeviceFailure
-from .parameters import ParameterStore
+from .tables.parameters import ParameterStore
 from .preflight import AxisReport, Reading, as_json, judge, no_bus, no_drive
 from .preflight import table as format_table
-from .sdo import NodeSilent, SdoPort
+from .bus.sdo import NodeSilent, SdoPort
 
 Opener = Callable[[BusConfig, List[AxisConfig]], Any]
 

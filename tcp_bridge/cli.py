@@ -35,10 +35,10 @@ from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence
 
 from .access import LOOPBACK, Network, is_loopback_bind, parse_network
 from .access import describe as describe_networks
-from .axes import AxisTable, ConfigError, Settings, simulated_table
+from .tables.axes import AxisTable, ConfigError, Settings, simulated_table
 from .errors import BridgeError, MalformedReply
-from .parameters import check_writable
-from .protocol import REPLY_SIZE, Reply, Status, decode_reply
+from .tables.statefile import check_writable
+from .wire import REPLY_SIZE, Reply, Status, decode_reply
 
 if TYPE_CHECKING:
     from .server import ServerOptions
@@ -353,7 +353,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     level = logging.INFO if args.verbose or args.debug else logging.WARNING
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
-    logging.getLogger("tcp_bridge.sdo").setLevel(logging.INFO)
+    logging.getLogger("tcp_bridge.bus.sdo").setLevel(logging.INFO)
     if not args.verbose:
         # canopen logs an absent node's SDO timeout as an error ("Transfer aborted
         # by client"); the bridge already answers it NAK and says why with -v/91.

@@ -5,7 +5,7 @@
     Request --prepare()--> Job --execute()--> reply bytes
               (event loop:          (bus worker thread: SDO transfers,
                validate, convert;    one BusWorker per bus,
-               InvalidCommand=CAN)   tcp_bridge.workers; DeviceFailure = NAK)
+               InvalidCommand=CAN)   tcp_bridge.bus.workers; DeviceFailure = NAK)
 
 :meth:`Engine.prepare` checks everything a request says (axis, command, R/W
 rights, value, conversions, ranges) before any transfer is planned, so a
@@ -13,10 +13,10 @@ malformed request never reaches a drive. :meth:`Engine.execute` runs the job on
 its bus's worker, so SDO traffic of one bus is serialised, buses run in
 parallel, and the event loop never blocks. Exceptions propagate: the server
 has the one place that turns them into replies
-(:func:`tcp_bridge.protocol.format_error_reply`).
+(:func:`tcp_bridge.wire.format_error_reply`).
 
 A move of an axis with a slave (commands 29/30) also moves the slave with its
-direction (:mod:`tcp_bridge.moves`): a slave on the master's bus moves in the
+direction (:mod:`tcp_bridge.plan.moves`): a slave on the master's bus moves in the
 master's own bus job, so both start together. Command 90 moves the configured
 internal axes, and a slave on another bus moves too: these *companion* jobs
 run on their own buses; the reply is ACK only if all of them succeed. A
@@ -33,7 +33,7 @@ A stop (S00=8, S90=0) is not gated: every axis is told to stop, whatever
 the others answer.
 
 Identical reads waiting in a bus's queue at the same time share one transfer
-(:mod:`tcp_bridge.shared_reads`, issue 14); every other request closes the
+(:mod:`tcp_bridge.bus.shared_reads`, issue 14); every other request closes the
 open groups of the buses it touches, so a read after a write stays after it.
 """
 from __future__ import annotations
@@ -46,20 +46,20 @@ from importlib import metadata
 from typing import (Any, Callable, Dict, Generator, List, Mapping, Optional, Sequence, Tuple,
                     Union)
 
-from .axes import AxisConfig, AxisTable, ConfigError, DeviceCode, parameter_spec
-from .parameters import ParameterStore
-from .commands import CommandSpec, resolve
+from .tables.axes import AxisConfig, AxisTable, ConfigError, DeviceCode, parameter_spec
+from .tables.parameters import ParameterStore
+from .tables.commands import CommandSpec, resolve
 from .errors import InvalidCommand
-from .failfast import BusGuard, log_change
-from .health import BusHealth
-from .moves import Follower, plan_move, stored_profile
-from .operations import AxisOps
-from .protocol import ReadRequest, Request, Status, format_read_reply, format_write_reply
-from .sdo import SdoPort
-from .shared_reads import BUSY, SHARE_WINDOW, SharedReads
+from .bus.failfast import BusGuard, log_change
+from .bus.health import BusHealth
+from .plan.moves import Follower, plan_move, stored_profile
+from .plan.axis import AxisOps
+from .wire import ReadRequest, Request, Status, format_read_reply, format_write_reply
+from .bus.sdo import SdoPort
+from .bus.shared_reads import BUSY, SHARE_WINDOW, SharedReads
 from .motion import Timing
-from .units import parse_value
-from .workers import BusWorker
+from .tables.units import parse_value
+from .bus.workers import BusWorker
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ class Job:
     precheck: Tuple["Job", ...] = field(default_factory=tuple)  # before anything moves
     stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
     share: Optional[Tuple[int, int]] = None  # (axis, command) of a read that may be shared
-    # A stop or halt: tried even on a bus declared silent (tcp_bridge.health), because
+    # A stop or halt: tried even on a bus declared silent (tcp_bridge.bus.health), because
     # a NAK without trying could leave an axis moving; it costs one timeout at most.
     urgent: bool = False
 
@@ -164,7 +164,7 @@ class Engine:
         s = table.settings
         timing = Timing(s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay,
                         s.poll_interval)
-        # Fail-fast buses (tcp_bridge.health, tcp_bridge.failfast): one guard per bus.
+        # Fail-fast buses (tcp_bridge.bus.health, tcp_bridge.bus.failfast): one guard per bus.
         self.guards: Dict[str, BusGuard] = {
             bus: BusGuard(BusHealth(bus, health_clock, probe_interval=s.probe_interval,
                                     on_change=log_change),
@@ -427,7 +427,7 @@ class Engine:
             future.set_exception(exc)
         return future
 
-    # Fail-fast buses (tcp_bridge.health): a job for a silent bus or node is refused
+    # Fail-fast buses (tcp_bridge.bus.health): a job for a silent bus or node is refused
     # before it is queued, and again when its turn comes; stops and halts are tried.
 
     def _refusal(self, job: Job) -> Optional[Exception]:

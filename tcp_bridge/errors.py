@@ -9,7 +9,7 @@
      +-- DeviceFailure                    reply NAK: the device transfer failed or the
      |    |                               node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
      |    +-- SilentLink                  reply NAK at once: the bus's device or the node
-     |                                    is declared silent (tcp_bridge.health); nothing sent
+     |                                    is declared silent (tcp_bridge.bus.health); nothing sent
      +-- ReplyOverflow (ValueError)       reply NAK: a value read from the device cannot be
      |                                    written into the 30-byte reply (spec 2.2.2)
      +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
@@ -17,7 +17,7 @@
 
 The spec (PSI TCP-IP to CANopen gateway, rev 2.3, 2.2.2) has three answers:
 ACK (executed), NAK (not executed; the drive did not answer) and CAN (the
-command is not valid). :func:`tcp_bridge.protocol.status_for` maps this tree
+command is not valid). :func:`tcp_bridge.wire.status_for` maps this tree
 onto them, so the server has exactly one place that turns an exception into a
 reply.
 
@@ -90,7 +90,7 @@ class DeviceFailure(BridgeError):
 
 class SilentLink(DeviceFailure):
     """Refused without a transfer: the bus's device, or the node, was declared silent
-    and no probe has heard it since (:mod:`tcp_bridge.health`, fail-fast buses)."""
+    and no probe has heard it since (:mod:`tcp_bridge.bus.health`, fail-fast buses)."""
 
 
 class ReplyOverflow(BridgeError, ValueError):

@@ -17,7 +17,7 @@ wrong device    the node is not a CiA 402 drive (0x1000 bits 0..15 are the
                 maxon's 0x000000FB (0x1018/01; the EPOS4 EDS's VendorNumber)
 units unknown   device 5 only: 60A9h (SI unit velocity) is not rpm with a
                 prefix the bridge knows, or 60A9h or 3000h/05h (main sensor
-                resolution) cannot be read (see :mod:`tcp_bridge.units`)
+                resolution) cannot be read (see :mod:`tcp_bridge.tables.units`)
 units mismatch  device 5 only: 3000h/05h differs from the axis table's
                 ``increments_per_revolution``, so every velocity the bridge
                 sends would be off by their ratio
@@ -37,9 +37,9 @@ from typing import Any, Dict, Final, Optional, Tuple
 
 from epos_link.cia402 import state_from_statusword
 
-from .axes import AxisConfig, DeviceCode
+from .tables.axes import AxisConfig, DeviceCode
 from .cia402_words import Mode
-from .units import Scaling, velocity_exponent
+from .tables.units import Scaling, velocity_exponent
 
 CIA402_PROFILE: Final = 402  # 0x1000 bits 0..15 (CiA 301 V4.2 7.5.2.1)
 MAXON_VENDOR_ID: Final = 0x000000FB  # 0x1018/01 of an EPOS4 (EPOS4 EDS, VendorNumber)

@@ -3,7 +3,7 @@
 Spec 2.1: the gateway is a TCP server on two ports, 1912 (NICOS / EPICS) and
 1913 (maintenance); both serve the same commands here. Per connection:
 
-* bytes go through a :class:`~tcp_bridge.protocol.LineSplitter` (bounded
+* bytes go through a :class:`~tcp_bridge.wire.LineSplitter` (bounded
   line length; an overlong line is answered CAN once);
 * requests are processed strictly in order, each awaited before the next, so
   every client gets its replies in request order; different connections
@@ -50,7 +50,7 @@ from typing import List, Optional, Sequence, Set, Tuple
 from .access import LOOPBACK, Network, describe, is_allowed
 from .engine import Engine
 from .errors import BridgeError
-from .protocol import DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item
+from .wire import DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item
 
 log = logging.getLogger(__name__)
 debug_log = logging.getLogger("tcp_bridge.debug")

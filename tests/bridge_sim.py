@@ -24,10 +24,10 @@ from epos_link.framing import decode_frames
 from epos_link.messages import Message, WriteObject, decode_request
 from epos_link.simulator.core import Epos4Simulator
 from epos_link.simulator.transport import SimTransport
-from tcp_bridge.axes import AxisTable, BusConfig, simulated_increments_per_revolution
+from tcp_bridge.tables.axes import AxisTable, BusConfig, simulated_increments_per_revolution
 from tcp_bridge.backends.epos import EposBackend
 from tcp_bridge.engine import Engine
-from tcp_bridge.protocol import Reply, Status
+from tcp_bridge.wire import Reply, Status
 from tcp_bridge.server import BridgeServer, ServerOptions
 from tests.helpers import psi_ask, wait_until
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Callable, Iterator
 if TYPE_CHECKING:
     import socket
 
-    from tcp_bridge.protocol import Reply
+    from tcp_bridge.wire import Reply
 
 
 def three_ways(stream: bytes, junk: bytes = b"\x11\x22\x33") -> Iterator[tuple[str, list[bytes], bytes]]:
@@ -48,7 +48,7 @@ def feed_all(decoder_factory: Callable, chunks: list[bytes]) -> tuple[list, list
 
 def psi_ask(sock: "socket.socket", line: str) -> "Reply":
     """Send one PSI request line (CR-terminated) and read its 30-byte reply (spec 2.2)."""
-    from tcp_bridge.protocol import REPLY_SIZE, decode_reply
+    from tcp_bridge.wire import REPLY_SIZE, decode_reply
 
     sock.sendall(line.encode() + b"\r")
     data = b""

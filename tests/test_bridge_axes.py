@@ -1,4 +1,4 @@
-"""Tests of tcp_bridge.axes (the axis table, spec section 3) and tcp_bridge.parameters.
+"""Tests of tcp_bridge.tables.axes (the axis table, spec section 3) and tcp_bridge.tables.parameters.
 
 Expected values are worked out by hand from spec 3 and 3.6 in the comments.
 """
@@ -14,9 +14,9 @@ from typing import Any, Dict
 
 import pytest
 
-from tcp_bridge.axes import (DEFAULTS, AxisTable, BusOffset, ConfigError, DeviceCode,
+from tcp_bridge.tables.axes import (DEFAULTS, AxisTable, BusOffset, ConfigError, DeviceCode,
                              simulated_increments_per_revolution, simulated_table)
-from tcp_bridge.parameters import ParameterStore, write_atomically
+from tcp_bridge.tables.parameters import ParameterStore, write_atomically
 
 # An EPOS4 (device 5) takes rpm: rpm = user/s * factor * 60 / IPR. With IPR 60 and
 # factor 1000 a drive value is user * 1000, the hand-worked values of spec 3.6.
@@ -237,7 +237,7 @@ def test_failed_state_file_write_keeps_the_value_and_logs(tmp_path: Path,
     store = ParameterStore(AxisTable.from_mapping(table()), blocker / "s.json")
     blocker.rmdir()  # made by the start-up check (issue 12) ...
     blocker.write_text("x")  # ... replaced after start: the directory cannot be created
-    with caplog.at_level("ERROR", logger="tcp_bridge.parameters"):
+    with caplog.at_level("ERROR", logger="tcp_bridge.tables.parameters"):
         store.set_user(1, 22, -1)  # does not raise: the change took effect
         assert store.flush(5)
     assert store.get(1, 22) == -1
@@ -248,7 +248,7 @@ def test_state_file_is_written_in_the_background_newest_snapshot_wins(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import threading
 
-    import tcp_bridge.parameters as parameters
+    import tcp_bridge.tables.parameters as parameters
 
     writes = []
     real = parameters.write_atomically

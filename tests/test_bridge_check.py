@@ -16,11 +16,11 @@ from typing import Any, Dict, List
 import pytest
 
 from epos_link.simulator.od import load_object_dictionary
-from tcp_bridge.axes import AxisConfig, AxisTable, DeviceCode, simulated_table
+from tcp_bridge.tables.axes import AxisConfig, AxisTable, DeviceCode, simulated_table
 from tcp_bridge.backends import open_backend
 from tcp_bridge.check import check
 from tcp_bridge.preflight import MAXON_VENDOR_ID, Reading, Verdict, as_json, judge, table
-from tcp_bridge.units import RPM, Scaling
+from tcp_bridge.tables.units import RPM, Scaling
 
 EPOS4 = AxisConfig(1, DeviceCode.C_DC_MAXON_EPOS4, node_id=1, position_factor=1000,
                    increments_per_revolution=2048)

@@ -1,4 +1,4 @@
-"""Tests of tcp_bridge.commands (the rev 2.3 command table) and tcp_bridge.units.
+"""Tests of tcp_bridge.tables.commands (the rev 2.3 command table) and tcp_bridge.tables.units.
 
 Expected table contents are transcribed by hand from section 4 of
 shared/seeds/PSI_TCP_Interface_Documentation.txt; numbers in the unit tests
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from tcp_bridge.commands import (
+from tcp_bridge.tables.commands import (
     COMMANDS,
     INT32,
     CommandKind,
@@ -23,8 +23,8 @@ from tcp_bridge.commands import (
     resolve,
 )
 from tcp_bridge.errors import InvalidCommand
-from tcp_bridge.protocol import ReadRequest, WriteRequest, format_error_reply
-from tcp_bridge.units import Scaling, parse_value, stored_parameter
+from tcp_bridge.wire import ReadRequest, WriteRequest, format_error_reply
+from tcp_bridge.tables.units import Scaling, parse_value, stored_parameter
 
 # Spec 4, "Read/Write" column.
 RIGHTS = {
@@ -316,7 +316,7 @@ def test_huge_user_value_is_rejected_after_scaling() -> None:
 
 def test_velocity_and_acceleration_commands_are_marked() -> None:
     # They convert by the drive's units (rpm, rpm/s on an EPOS4), the rest by the factor.
-    from tcp_bridge.commands import Quantity
+    from tcp_bridge.tables.commands import Quantity
     assert {n for n, c in COMMANDS.items() if c.quantity is Quantity.VELOCITY} == {5, 14, 26, 41, 42}
     assert {n for n, c in COMMANDS.items()
             if c.quantity is Quantity.ACCELERATION} == {6, 27, 28, 43}

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from tcp_bridge import cli
-from tcp_bridge.axes import AxisTable, ConfigError
+from tcp_bridge.tables.axes import AxisTable, ConfigError
 
 GOOD_BUS = '[bus.can1]\nbackend = "instant"\n'
 GOOD_AXIS = "[[axis]]\nnode_id = 1\n"

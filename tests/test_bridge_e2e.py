@@ -26,10 +26,10 @@ import pytest
 
 from epos_link.simulator.core import Epos4Simulator
 from epos_link.simulator.link import PtyLink
-from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
-from tcp_bridge.commands import COMMANDS
+from tcp_bridge.tables.axes import AxisTable, simulated_increments_per_revolution
+from tcp_bridge.tables.commands import COMMANDS
 from tcp_bridge.engine import build_engine
-from tcp_bridge.protocol import Reply, Status
+from tcp_bridge.wire import Reply, Status
 from tcp_bridge.server import BridgeServer, ServerOptions
 from tests.helpers import psi_ask
 

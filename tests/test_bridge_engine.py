@@ -16,13 +16,13 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import pytest
 
-from tcp_bridge.axes import AxisTable
+from tcp_bridge.tables.axes import AxisTable
 from tcp_bridge.backends.instant import FakeNode
-from tcp_bridge.commands import COMMANDS
+from tcp_bridge.tables.commands import COMMANDS
 from tcp_bridge.engine import Engine, build_engine, software_version
 from tcp_bridge.errors import DeviceFailure
-from tcp_bridge.operations import detailed_error_from_code
-from tcp_bridge.protocol import Reply, Status, decode_reply, format_error_reply, parse_request
+from tcp_bridge.plan.axis import detailed_error_from_code
+from tcp_bridge.wire import Reply, Status, decode_reply, format_error_reply, parse_request
 from tcp_bridge.motion import Cia402, State, Timing, decode_state
 
 # An EPOS4 (device 5) takes rpm: rpm = user/s * factor * 60 / IPR. With IPR 60 and
@@ -825,7 +825,7 @@ def test_failed_state_file_write_is_still_ack(tmp_path: Any) -> None:
 def test_a_stuck_state_file_never_stalls_the_bus(tmp_path: Any, monkeypatch: Any) -> None:
     import threading
 
-    import tcp_bridge.parameters as parameters
+    import tcp_bridge.tables.parameters as parameters
 
     disk = threading.Event()
     written = threading.Event()

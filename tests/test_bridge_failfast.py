@@ -20,10 +20,10 @@ from epos_link.framing import decode_frames
 from epos_link.messages import Message, ReadObject, decode_request
 from epos_link.simulator.core import Epos4Simulator
 from epos_link.simulator.transport import SimTransport
-from tcp_bridge.axes import AxisTable, BusConfig, simulated_increments_per_revolution
+from tcp_bridge.tables.axes import AxisTable, BusConfig, simulated_increments_per_revolution
 from tcp_bridge.backends.epos import EposBackend
 from tcp_bridge.engine import Engine, build_engine
-from tcp_bridge.protocol import Status, decode_reply
+from tcp_bridge.wire import Status, decode_reply
 from tests.test_bridge_server import Running, exchange, recv_replies
 
 FAST = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,

@@ -1,5 +1,5 @@
-"""Tests of tcp_bridge.health (fail-fast buses, issue 12): the state machine on a fake clock,
-and tcp_bridge.sdo.silence_of, which tells a silent bus's device from a silent node."""
+"""Tests of tcp_bridge.bus.health (fail-fast buses, issue 12): the state machine on a fake clock,
+and tcp_bridge.bus.sdo.silence_of, which tells a silent bus's device from a silent node."""
 from __future__ import annotations
 
 import logging
@@ -11,9 +11,9 @@ from canopen import SdoAbortedError, SdoCommunicationError
 from hypothesis import given, strategies as st
 
 from epos_link.errors import DeviceError, EposTimeoutError, TransportError
-from tcp_bridge.failfast import log_change
-from tcp_bridge.health import BusHealth, Change, Silence
-from tcp_bridge.sdo import silence_of
+from tcp_bridge.bus.failfast import log_change
+from tcp_bridge.bus.health import BusHealth, Change, Silence
+from tcp_bridge.bus.sdo import silence_of
 
 
 class Clock:
@@ -57,7 +57,7 @@ def test_silent_device_is_probed_every_interval_and_reopens_on_an_answer(
         caplog: pytest.LogCaptureFixture) -> None:
     h, clock = health()
     h.on_change = log_change
-    with caplog.at_level(logging.WARNING, logger="tcp_bridge.failfast"):
+    with caplog.at_level(logging.WARNING, logger="tcp_bridge.bus.failfast"):
         h.record(1, Silence.LINK, "timeout")
         h.probed(None, Silence.LINK, "timeout")
         assert h.due() == [] and h.next_due() == pytest.approx(0.25)
@@ -174,7 +174,7 @@ def test_refusal_follows_the_declarations_and_waits_stay_bounded(steps: list) ->
         assert (wait is None) == (not h.silent and not any(h.node_silent(n) for n in (1, 2, 3)))
 
 
-# --- who was silent: tcp_bridge.sdo.silence_of ------------------------------------------
+# --- who was silent: tcp_bridge.bus.sdo.silence_of ------------------------------------------
 
 
 def wrapped(inner: BaseException) -> SdoCommunicationError:

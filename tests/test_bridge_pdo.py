@@ -18,11 +18,11 @@ from typing import Any, Callable, Dict, Iterator, List, Tuple
 import pytest
 
 from epos_link.simulator.core import Epos4Simulator
-from tcp_bridge.axes import AxisTable, BusConfig, ConfigError, simulated_increments_per_revolution
+from tcp_bridge.tables.axes import AxisTable, BusConfig, ConfigError, simulated_increments_per_revolution
 from tcp_bridge.backends.canopen_bus import CanopenBackend
 from tcp_bridge.backends.pdo_status import PdoSettings, StatusFeed
 from tcp_bridge.engine import Engine, build_engine
-from tcp_bridge.protocol import Status, decode_reply, parse_request
+from tcp_bridge.wire import Status, decode_reply, parse_request
 from tests.helpers import wait_until
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.02,

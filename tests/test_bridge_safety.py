@@ -16,7 +16,7 @@ import pytest
 
 from epos_link.cia402 import State
 from epos_link.messages import ReadObject, WriteObject
-from tcp_bridge.protocol import Status
+from tcp_bridge.wire import Status
 from tests.bridge_sim import SimBridge, controlword_write, opcodes
 
 FACTOR = 1000  # user units are mm; the drives count increments
@@ -271,9 +271,9 @@ def test_a_slave_moves_in_step_with_its_master(bridge: SimBridge) -> None:
 
 def test_a_boot_up_message_on_can_makes_enable_reset_and_restore() -> None:
     from epos_link.simulator.core import Epos4Simulator
-    from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
+    from tcp_bridge.tables.axes import AxisTable, simulated_increments_per_revolution
     from tcp_bridge.engine import build_engine
-    from tcp_bridge.protocol import decode_reply, parse_request
+    from tcp_bridge.wire import decode_reply, parse_request
 
     sim = Epos4Simulator(1, [2])
     table = AxisTable.from_mapping({

@@ -20,10 +20,10 @@ from typing import Any, Dict, Iterator, List
 import pytest
 
 from tcp_bridge import cli
-from tcp_bridge.axes import AxisTable
+from tcp_bridge.tables.axes import AxisTable
 from tcp_bridge.backends.instant import FakeNode
 from tcp_bridge.engine import Engine, build_engine
-from tcp_bridge.protocol import REPLY_SIZE, Status, decode_reply
+from tcp_bridge.wire import REPLY_SIZE, Status, decode_reply
 from tcp_bridge.server import BridgeServer, ServerOptions
 from tests.helpers import wait_until
 

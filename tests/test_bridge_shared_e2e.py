@@ -20,11 +20,11 @@ from typing import Iterator, List, Tuple
 
 import pytest
 
-from tcp_bridge.axes import AxisTable, simulated_increments_per_revolution
+from tcp_bridge.tables.axes import AxisTable, simulated_increments_per_revolution
 from tcp_bridge.engine import build_engine
-from tcp_bridge.protocol import Status
+from tcp_bridge.wire import Status
 from tcp_bridge.server import BridgeServer, ServerOptions
-from tcp_bridge.shared_reads import SHARE_WINDOW
+from tcp_bridge.bus.shared_reads import SHARE_WINDOW
 from tests.helpers import psi_ask
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.02,

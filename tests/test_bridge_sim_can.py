@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from tcp_bridge.axes import AxisTable, ConfigError, simulated_increments_per_revolution
+from tcp_bridge.tables.axes import AxisTable, ConfigError, simulated_increments_per_revolution
 from tcp_bridge.backends.sim import SimCanBackend
 from tcp_bridge.engine import build_engine
-from tcp_bridge.protocol import Status, decode_reply, parse_request
+from tcp_bridge.wire import Status, decode_reply, parse_request
 from tests.helpers import wait_until
 
 

@@ -21,7 +21,7 @@ import pytest
 
 from tcp_bridge.access import (LOOPBACK, client_address, is_allowed, is_loopback_bind,
                                parse_network)
-from tcp_bridge.protocol import Status
+from tcp_bridge.wire import Status
 from tests.test_bridge_server import Running, exchange, make_engine, named, write_config
 
 

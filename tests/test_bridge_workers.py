@@ -1,4 +1,4 @@
-"""Tests of tcp_bridge.workers: one bus thread, jobs in order, the executor's shutdown rules."""
+"""Tests of tcp_bridge.bus.workers: one bus thread, jobs in order, the executor's shutdown rules."""
 from __future__ import annotations
 
 import asyncio
@@ -8,7 +8,7 @@ from typing import List
 
 import pytest
 
-from tcp_bridge.workers import BusWorker
+from tcp_bridge.bus.workers import BusWorker
 
 
 def test_jobs_run_in_order_on_the_bus_thread_and_exceptions_arrive() -> None:
@@ -87,7 +87,7 @@ def test_close_finishes_the_job_in_flight_and_cancels_the_queued() -> None:
 
 
 def test_maintenance_runs_between_jobs_and_while_idle_and_survives_a_bug() -> None:
-    # The fail-fast probes of a silent bus run here (tcp_bridge.failfast).
+    # The fail-fast probes of a silent bus run here (tcp_bridge.bus.failfast).
     calls: List[str] = []
     due = threading.Event()
     order: List[str] = []

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from epos_link.transports.usb import PERMISSION_HELP, UDEV_RULE, UDEV_RULES_FILE
-from tcp_bridge.axes import AxisTable
+from tcp_bridge.tables.axes import AxisTable
 
 if sys.version_info >= (3, 11):
     import tomllib

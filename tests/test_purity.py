@@ -13,8 +13,9 @@ PURE = [
     "epos_link.simulator.faults", "epos_link.simulator.homing", "epos_link.simulator.nmt",
     "epos_link.simulator.clock", "epos_link.simulator.motion",
     "epos_link.tools.decode", "epos_link.tools.pcapng",
-    "tcp_bridge.protocol", "tcp_bridge.commands", "tcp_bridge.units",
-    "tcp_bridge.access", "tcp_bridge.health",
+    "tcp_bridge.wire", "tcp_bridge.wire.lines", "tcp_bridge.wire.requests",
+    "tcp_bridge.wire.replies", "tcp_bridge.tables.commands", "tcp_bridge.tables.units",
+    "tcp_bridge.access", "tcp_bridge.bus.health",
 ]
 FORBIDDEN = ["serial", "usb", "socket", "asyncio", "threading", "time", "select", "can", "canopen"]
 

@@ -27,10 +27,10 @@ import importlib
 import sys
 from typing import TYPE_CHECKING, Any, Callable, Dict, Protocol, Sequence
 
-from ..axes import ConfigError
+from ..tables.axes import ConfigError
 
 if TYPE_CHECKING:
-    from ..axes import AxisConfig, BusConfig
+    from ..tables.axes import AxisConfig, BusConfig
 
 BACKENDS: Dict[str, str] = {
     "canopen": "tcp_bridge.backends.canopen_bus:CanopenBackend",

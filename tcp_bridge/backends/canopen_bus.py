@@ -29,13 +29,13 @@ from typing import Any, Callable, Dict, Optional, Sequence
 
 import canopen
 
-from ..axes import AxisConfig, BusConfig, ConfigError
+from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .pdo_status import PdoSettings, PdoStatus, StatusFeed
 
 
 class FedNode(canopen.RemoteNode):  # type: ignore[misc]
     """A RemoteNode that may carry a :class:`StatusFeed` (``pdo = true``), which
-    :class:`tcp_bridge.sdo.SdoPort` consults for status reads."""
+    :class:`tcp_bridge.bus.sdo.SdoPort` consults for status reads."""
 
     status_feed: Optional[StatusFeed] = None
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Dict, Optional, Sequence
 
-from ..axes import AxisConfig, BusConfig, ConfigError
+from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import object_dictionary
 
 
@@ -59,12 +59,12 @@ class EposBackend:
         return node
 
     def attach_wait(self, hook: Callable[[], None]) -> None:
-        """Call ``hook`` whenever the client starts to wait on the link (tcp_bridge.workers:
+        """Call ``hook`` whenever the client starts to wait on the link (tcp_bridge.bus.workers:
         a reply is handed over while the link carries the next request)."""
         self.client.on_wait = hook
 
     def probe(self) -> None:
-        """Does the EPOS4 itself answer? (Fail-fast buses, :mod:`tcp_bridge.failfast`.)
+        """Does the EPOS4 itself answer? (Fail-fast buses, :mod:`tcp_bridge.bus.failfast`.)
 
         Reads its device type, 1000h/00h, as node 0: the device on the link
         itself (Communication Guide, chapter 5 gateway addressing), so an absent

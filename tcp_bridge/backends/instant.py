@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Sequence, Tuple
 
 from canopen import SdoAbortedError, SdoCommunicationError
 
-from ..sdo import decode, object_type
+from ..bus.sdo import decode, object_type
 
 # (statusword bits without 4/9/10/12) by state name
 _SW = {"SOD": 0x0040, "RTSO": 0x0021, "SO": 0x0023, "OE": 0x0027, "QS": 0x0007, "FAULT": 0x0008}

@@ -51,10 +51,10 @@ reads the statusword by SDO (:mod:`tcp_bridge.motion`) and waits for the
 drive's own acknowledgement, exactly as without PDOs.
 
 A statusword taken from a PDO goes to the same watcher as one read by SDO
-(:meth:`tcp_bridge.sdo.SdoPort.read_status`: :class:`tcp_bridge.motion.Cia402`
+(:meth:`tcp_bridge.bus.sdo.SdoPort.read_status`: :class:`tcp_bridge.motion.Cia402`
 sees every statusword a poll returns). That happens on the bus worker's thread,
 or on the event loop while the worker has nothing queued or running
-(:mod:`tcp_bridge.shared_reads` rule 5), so never on two threads at once.
+(:mod:`tcp_bridge.bus.shared_reads` rule 5), so never on two threads at once.
 
 A drive that refuses the mapping (an SDO abort) stays on SDO, with one log
 line. After a boot-up message (power cycle, NMT reset) the drive's mapping is

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from typing import Any, Dict, Final, List, Optional, Sequence, Tuple
 
-from ..axes import AxisConfig, BusConfig, ConfigError
+from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import CanopenBackend
 from .epos import EposBackend
 

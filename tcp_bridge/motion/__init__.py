@@ -3,7 +3,7 @@
 Every controlword the bridge writes, every NMT reset it sends and every move
 it starts goes through :class:`Cia402` (power, modes and stop in
 :mod:`.drive`, the start of a move in :mod:`.start`). Commands cite this
-module (:mod:`tcp_bridge.operations`: 00, 04, 07, 16, 17, 85 and the slave
+module (:mod:`tcp_bridge.plan.axis`: 00, 04, 07, 16, 17, 85 and the slave
 moves of 29/30 and 90). Synchronous code for a bus worker thread; every wait
 polls the statusword (6041h) and is bounded by a
 :class:`~tcp_bridge.cia402_words.Deadline`; running out of time raises

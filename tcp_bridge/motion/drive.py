@@ -16,7 +16,7 @@ from epos_link.cia402 import State, state_from_statusword
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, STATUSWORD,
                             TARGET_VELOCITY, Cw, Deadline, Sw, Timing, decode_state)
 from ..errors import DeviceFailure
-from ..sdo import NodeSilent, SdoPort
+from ..bus.sdo import NodeSilent, SdoPort
 from .start import MoveStarts, OutcomeUnknown
 
 log = logging.getLogger("tcp_bridge.motion")
@@ -57,7 +57,7 @@ class Restore(Protocol):
 
 
 class Cia402(MoveStarts):
-    """The sequences of one drive, through its :class:`~tcp_bridge.sdo.SdoPort`.
+    """The sequences of one drive, through its :class:`~tcp_bridge.bus.sdo.SdoPort`.
 
     It watches every statusword the port reads (polls of R10, R04, R82 too), so
     a drive that falls back to SWITCH ON DISABLED is noticed whoever read it.

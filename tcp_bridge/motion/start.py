@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Callable, Sequence, Tuple, Union
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, TARGET_POSITION, TARGET_VELOCITY, Cw,
                             Deadline, Mode, Sw)
 from ..errors import DeviceFailure
-from ..sdo import NodeSilent
+from ..bus.sdo import NodeSilent
 
 if TYPE_CHECKING:
     from .drive import Cia402

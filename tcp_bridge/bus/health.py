@@ -6,7 +6,7 @@ a bus worker runs one request at a time, so one silent device used to stall
 every axis of its bus: a client polling 8 axes waited 16 s per cycle.
 
 Two kinds of silence, told apart by who failed to answer
-(:func:`tcp_bridge.sdo.silence_of` classifies the exceptions):
+(:func:`tcp_bridge.bus.sdo.silence_of` classifies the exceptions):
 
 * :attr:`Silence.LINK`, **the bus's device**: the EPOS4 on USB/RS232 (``epos``
   and ``sim`` backends: ``EposTimeoutError``, ``TransportError``) or the CAN
@@ -37,7 +37,7 @@ Each link (the bus's device, each node) is ANSWERING, SUSPECT or SILENT:
   the outage's length. Requests refused during the outage are never replayed:
   they were answered NAK, and a client that still wants them sends them again.
 
-Periodic probes (run by the bus worker, :mod:`tcp_bridge.workers`, between
+Periodic probes (run by the bus worker, :mod:`tcp_bridge.bus.workers`, between
 jobs and while idle): a silent bus's device is probed every
 ``probe_interval`` (default 0.25 s), as nothing else uses its bus meanwhile;
 a silent node costs the other nodes of its bus one gateway timeout per probe,
@@ -75,7 +75,7 @@ class Change:
     """A link was declared silent (``silent``), or answers again after ``duration`` s.
 
     Given to the ``on_change`` callback of :class:`BusHealth`, which logs it
-    (:mod:`tcp_bridge.failfast`): this module does no I/O, logging included.
+    (:mod:`tcp_bridge.bus.failfast`): this module does no I/O, logging included.
     """
 
     link: str

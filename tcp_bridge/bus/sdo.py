@@ -12,18 +12,18 @@ gateway uses (so a U16 controlword goes out as 2 bytes and a statusword comes
 back unsigned), turns every failure into :class:`~tcp_bridge.errors.DeviceFailure`
 (answered NAK), and logs each transfer when command 91 "debug print" is on. It
 tells its observer the outcome of every transfer, and :func:`silence_of` tells a
-silent bus's device from a silent node (fail-fast buses, :mod:`tcp_bridge.health`).
+silent bus's device from a silent node (fail-fast buses, :mod:`tcp_bridge.bus.health`).
 """
 from __future__ import annotations
 
 import logging
 from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
 
-from .errors import DeviceFailure
+from ..errors import DeviceFailure
 from .health import Silence
 from .shared_reads import NeedsBus
 
-log = logging.getLogger("tcp_bridge.sdo")
+log = logging.getLogger("tcp_bridge.bus.sdo")
 
 # (size in bytes, signed) by (index, subindex); subindex None = every subindex.
 # Sources: CiA 301 V4.2 7.5.2 (1001h), CiA 402-2 V4.0 object descriptions;
@@ -72,7 +72,7 @@ def decode(data: bytes, size: int, signed: bool) -> int:
 
 
 # Exceptions that mean the bus's device itself gave no usable answer (issue 12,
-# tcp_bridge.health): the epos_link client's timeout and link failures, a CAN
+# tcp_bridge.bus.health): the epos_link client's timeout and link failures, a CAN
 # adapter's errors. An SDO abort, even 0x05040000, is an answer from the link.
 _LINK_FAILURES: Final = frozenset({"EposTimeoutError", "TransportError", "RemoteProtocolError",
                                    "CanError"})
@@ -80,7 +80,7 @@ _LINK_FAILURES: Final = frozenset({"EposTimeoutError", "TransportError", "Remote
 
 def silence_of(exc: BaseException) -> Optional[Silence]:
     """Who was silent when a transfer failed with ``exc``: the bus's device, the node, or
-    None (the node answered, with an abort). See :mod:`tcp_bridge.health`."""
+    None (the node answered, with an abort). See :mod:`tcp_bridge.bus.health`."""
     seen = 0
     cause: Optional[BaseException] = exc
     while cause is not None and seen < 8:  # the adapter wraps the client's error (from exc)
@@ -113,7 +113,7 @@ class SdoPort:
         self.node = node
         self.name = name
         self._debug = debug
-        # Told the outcome of every transfer (tcp_bridge.health: fail-fast buses).
+        # Told the outcome of every transfer (tcp_bridge.bus.health: fail-fast buses).
         self._observer = observer or (lambda silence, why: None)
         self._watchers: Dict[Tuple[int, int], Callable[[int], None]] = {}
         # PDO-fed status (canopen backend, pdo = true; tcp_bridge.backends.pdo_status):
@@ -160,7 +160,7 @@ class SdoPort:
 
     def pdo_only(self, plan: Callable[[], Any]) -> Any:
         """Run ``plan`` answering only from PDOs; :class:`NeedsBus` at its first SDO.
-        For the event loop (tcp_bridge.shared_reads rule 5): it never blocks there."""
+        For the event loop (tcp_bridge.bus.shared_reads rule 5): it never blocks there."""
         self._pdo_only = True
         try:
             return plan()

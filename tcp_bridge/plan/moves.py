@@ -33,15 +33,15 @@ import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Sequence, Tuple
 
-from .commands import COMMANDS, ObjectRef
-from .errors import DeviceFailure, InvalidCommand
-from .motion import HomingMove, Move, PositionMove, VelocityMove
-from .operations import check_resolution
-from .sdo import NodeSilent
-from .units import Number
+from ..tables.commands import COMMANDS, ObjectRef
+from ..errors import DeviceFailure, InvalidCommand
+from ..motion import HomingMove, Move, PositionMove, VelocityMove
+from .axis import check_resolution
+from ..bus.sdo import NodeSilent
+from ..tables.units import Number
 
 if TYPE_CHECKING:
-    from .operations import AxisOps
+    from .axis import AxisOps
 
 log = logging.getLogger(__name__)
 

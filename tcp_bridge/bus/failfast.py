@@ -1,12 +1,12 @@
 """Fail-fast glue for one bus: the health record, the probes, the refusals.
 
-:class:`tcp_bridge.health.BusHealth` holds the policy (pure, documented
+:class:`tcp_bridge.bus.health.BusHealth` holds the policy (pure, documented
 there); this module connects it to the I/O: :class:`BusGuard` gives each
-axis's :class:`~tcp_bridge.sdo.SdoPort` an observer that records every
+axis's :class:`~tcp_bridge.bus.sdo.SdoPort` an observer that records every
 transfer's outcome, answers :meth:`BusGuard.refusal` for the engine before a
 job is queued and again when its turn comes (so nothing queued during an
 outage reaches the device), and runs the due probes on the bus's worker
-thread (:meth:`BusGuard.maintain`, called by :class:`tcp_bridge.workers.BusWorker`
+thread (:meth:`BusGuard.maintain`, called by :class:`tcp_bridge.bus.workers.BusWorker`
 between jobs and while idle), and probes a link a job found silent before
 that job's reply goes out (:meth:`BusGuard.settle`).
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Mapping, Optional
 
-from .errors import SilentLink
+from ..errors import SilentLink
 from .health import BusHealth, Change, Silence, Target
 from .sdo import _is_device_error, silence_of
 

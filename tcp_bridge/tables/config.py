@@ -1,7 +1,7 @@
 """Reading the axis table from TOML: every mistake is one line naming file, table and key.
 
 Policy (issue 12): a configuration is checked completely at start-up, and a
-mistake ends the start with :class:`~tcp_bridge.axes.ConfigError`, which the
+mistake ends the start with :class:`~tcp_bridge.tables.axes.ConfigError`, which the
 CLI prints as one line and exit status 2. The line has the form::
 
     axes.toml: [[axis]] #2 (AxAddr 3): node_id: 200 is not 1..127 (spec 3.4)
@@ -14,7 +14,7 @@ number belongs, ``[bus] can1 = "sim"``, a file that is not UTF-8) can reach a
 nearest known key as a suggestion (``difflib``). What the keys mean is
 documented in ``tcp_bridge/example_axes.toml``; the rules that relate axes to
 each other (node ids, buses, spec 3.2 ordering) are in
-:func:`tcp_bridge.axes._validate`.
+:func:`tcp_bridge.tables.axes._validate`.
 """
 from __future__ import annotations
 
@@ -26,11 +26,11 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Dict, Iterable, Mapping, Optional
 
-from .access import parse_network
+from ..access import parse_network
 from .axes import (BUS_NAMES, DEVICE_NAMES, IPR_KEY, PARAMETER_NAMES, PARAMETER_NUMBERS,
                    AxisConfig, AxisTable, BusConfig, BusOffset, ConfigError, DeviceCode,
                    Settings, parameter_spec, to_stored)
-from .errors import InvalidCommand
+from ..errors import InvalidCommand
 from .units import Number, parse_value
 
 if sys.version_info >= (3, 11):

@@ -8,7 +8,7 @@ are the internal parameters of the command table (spec 4), kept here by TCP
 command number (2, 5, 6, 19..63, 80) in their stored form: an integer, and for
 the ``*`` ones ``round(user value * factor)`` (spec 4 footnote).
 
-The table is read from a TOML file by :mod:`tcp_bridge.config` (every
+The table is read from a TOML file by :mod:`tcp_bridge.tables.config` (every
 mistake is one line naming the file, the table and the key);
 ``tcp_bridge/example_axes.toml`` documents every key. :func:`_validate` holds
 the rules between axes, for tables built in code too; a table without axes
@@ -31,8 +31,8 @@ from types import MappingProxyType
 from typing import Any, Dict, Final, Mapping, Optional, Tuple, Union
 
 from .commands import COMMANDS, CommandKind, CommandSpec
-from .errors import BridgeError
-from .protocol import MAX_AXIS
+from ..errors import BridgeError
+from ..wire import MAX_AXIS
 from .units import Number, Scaling, stored_parameter
 
 
@@ -140,7 +140,7 @@ class AxisConfig:
     # Configured parameter values in user units, by command number.
     parameters: Mapping[int, Number] = field(default_factory=dict)
     # Device 5 (EPOS4): motor encoder increments per motor revolution, after
-    # quadrature (4 x 3010h/01h pulses); velocities are rpm (tcp_bridge.units).
+    # quadrature (4 x 3010h/01h pulses); velocities are rpm (tcp_bridge.tables.units).
     increments_per_revolution: Optional[int] = None
 
     @property
@@ -168,7 +168,7 @@ class Settings:
     idle_timeout: Optional[float] = None
     # Client networks served (tcp_bridge.access); None = the default, loopback only.
     allow: Optional[Tuple[Any, ...]] = None
-    # Fail-fast buses (tcp_bridge.health): seconds between probes of a silent bus.
+    # Fail-fast buses (tcp_bridge.bus.health): seconds between probes of a silent bus.
     probe_interval: float = 0.25
 
     def __post_init__(self) -> None:

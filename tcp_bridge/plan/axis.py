@@ -8,7 +8,7 @@ axis's bus worker thread). Parameters are stored only after the drive took
 them, so a NAK means "nothing changed". Everything that changes the power
 state or moves the axis (00, 04, 07, 16, 17) goes through
 :mod:`tcp_bridge.motion`, which holds the safety rule; moves are planned in
-:mod:`tcp_bridge.moves`.
+:mod:`tcp_bridge.plan.moves`.
 
 Rules not spelled out by the spec, chosen here:
 
@@ -19,7 +19,7 @@ Rules not spelled out by the spec, chosen here:
 * 05 Velocity is signed: the sign is the direction of a velocity move (S00=3);
   0x6081 (UNSIGNED32) gets the magnitude.
 * Velocities and accelerations convert by the drive's units
-  (:mod:`tcp_bridge.units`): rpm and rpm/s on an EPOS4 (device 5), whose
+  (:mod:`tcp_bridge.tables.units`): rpm and rpm/s on an EPOS4 (device 5), whose
   velocity unit 60A9h is read from the drive the first time it is needed.
   A unit the bridge does not know is logged once, and that axis's velocity
   commands answer NAK. 14 Actual Velocity is in user units/s, like 05.
@@ -42,13 +42,13 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Dict, Final, List, Optional, Tuple, Union
 
-from .axes import AxisConfig, DeviceCode, parameter_spec, to_stored
-from .commands import CommandKind, CommandSpec, ObjectRef, Quantity, SdoSelector
-from .errors import DeviceFailure, InvalidCommand
-from .motion import MODES_DISPLAY, STATUSWORD, Cia402, Mode, State, Sw, Timing, Why
-from .parameters import ParameterStore
-from .sdo import NodeSilent, SdoPort, object_type
-from .units import DriveUnits, Number, Scaling, velocity_exponent
+from ..tables.axes import AxisConfig, DeviceCode, parameter_spec, to_stored
+from ..tables.commands import CommandKind, CommandSpec, ObjectRef, Quantity, SdoSelector
+from ..errors import DeviceFailure, InvalidCommand
+from ..motion import MODES_DISPLAY, STATUSWORD, Cia402, Mode, State, Sw, Timing, Why
+from ..tables.parameters import ParameterStore
+from ..bus.sdo import NodeSilent, SdoPort, object_type
+from ..tables.units import DriveUnits, Number, Scaling, velocity_exponent
 
 log = logging.getLogger(__name__)
 
@@ -139,7 +139,7 @@ class AxisOps:
         self._scaling_memo: Optional[Tuple[Tuple[Any, ...], Scaling]] = None
         self.unit_error: Optional[str] = None
         # Profile objects of a slave that followed its master's profile, with the
-        # values to put back before it moves on its own (tcp_bridge.moves).
+        # values to put back before it moves on its own (tcp_bridge.plan.moves).
         self.borrowed_profile: Dict[ObjectRef, int] = {}
         self._compare_parameters = True  # motion.Restore.ignore_differences
         # The last value the bridge wrote to each object of this drive (any command,

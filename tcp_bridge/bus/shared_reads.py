@@ -59,7 +59,7 @@ class NeedsBus(Exception):
 
 
 class Worker(Protocol):
-    """What :class:`SharedReads` needs of a :class:`tcp_bridge.workers.BusWorker`."""
+    """What :class:`SharedReads` needs of a :class:`tcp_bridge.bus.workers.BusWorker`."""
 
     def submit(self, job: Callable[[], Any]) -> "asyncio.Future[Any]": ...
 

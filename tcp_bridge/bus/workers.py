@@ -35,7 +35,7 @@ Maintenance: a worker may be given ``maintenance``, a callable run on the
 worker thread before each job and whenever the queue has been empty for as
 long as it asked (it returns the seconds until it wants to run again, or None
 for "nothing to do"; it runs at least every second anyway). The fail-fast
-probes of a silent bus run there (:mod:`tcp_bridge.failfast`): on the one
+probes of a silent bus run there (:mod:`tcp_bridge.bus.failfast`): on the one
 thread that talks to the bus, between jobs, never concurrently with one.
 """
 from __future__ import annotations
@@ -138,7 +138,7 @@ class BusWorker:
 
     def queued(self) -> int:
         """How many jobs wait in the queue (approximate across threads; the job in
-        flight is not counted). :mod:`tcp_bridge.shared_reads` stops gathering on it."""
+        flight is not counted). :mod:`tcp_bridge.bus.shared_reads` stops gathering on it."""
         return self._queue.qsize()
 
     def close(self, wait: bool = True) -> None:

@@ -31,10 +31,10 @@ from enum import Enum
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Final, FrozenSet, Mapping, Optional, Tuple
 
-from .errors import InvalidCommand
+from ..errors import InvalidCommand
 
 if TYPE_CHECKING:
-    from .protocol import Request
+    from ..wire import Request
 
 INT8: Final = (-(2**7), 2**7 - 1)
 INT16: Final = (-(2**15), 2**15 - 1)
@@ -55,7 +55,7 @@ class CommandKind(Enum):
 
 class Quantity(Enum):
     """What a user-unit value measures; velocities and accelerations convert by the
-    drive's units (:class:`tcp_bridge.units.Scaling`), the rest by the factor."""
+    drive's units (:class:`tcp_bridge.tables.units.Scaling`), the rest by the factor."""
 
     OTHER = "other"  # positions, distances, windows: user * factor
     VELOCITY = "velocity"  # user/s: inc/s, or rpm on an EPOS4
@@ -63,7 +63,7 @@ class Quantity(Enum):
 
 
 class ValueType(Enum):
-    """How the value text of a write is parsed (see tcp_bridge.units.parse_value)."""
+    """How the value text of a write is parsed (see tcp_bridge.tables.units.parse_value)."""
 
     INT = "int"  # codes, bit fields, raw drive units; decimal or 0x-hex
     FLOAT = "float"  # user units
@@ -254,7 +254,7 @@ _TABLE: Tuple[CommandSpec, ...] = (
     # Statusword bits from table 4.a. The table names no end-switch bit, and
     # bit 11 "Internal Limit Active" is also set while a drive limits current or
     # velocity, so 83 reads the limit switch inputs of 60FDh instead (bit 0
-    # negative, bit 1 positive; CiA 402-2 60FDh), see tcp_bridge.operations. The
+    # negative, bit 1 positive; CiA 402-2 60FDh), see tcp_bridge.plan.axis. The
     # row keeps the spec's own column.
     CommandSpec(82, "Motion /Target reached", True, False, _K.STATUS_BIT, _STATUSWORD,
                 needs_sdo=True, bit=10, choices=frozenset({0, 1}), unit="0=motion 1=in target"),

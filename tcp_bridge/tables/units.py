@@ -46,8 +46,8 @@ from functools import lru_cache
 from typing import Final, Optional, Tuple, Union
 
 from .commands import INT32, CommandSpec, ValueType
-from .errors import InvalidCommand
-from .protocol import NUMBER_RE
+from ..errors import InvalidCommand
+from ..wire import NUMBER_RE
 
 Number = Union[int, float]
 
