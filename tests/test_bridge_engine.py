@@ -21,7 +21,7 @@ from tcp_bridge.backends.instant import FakeNode
 from tcp_bridge.tables.commands import COMMANDS
 from tcp_bridge.engine import Engine, build_engine, software_version
 from tcp_bridge.errors import DeviceFailure
-from tcp_bridge.plan.axis import detailed_error_from_code
+from tcp_bridge.plan.reads import detailed_error_from_code
 from tcp_bridge.wire import Reply, Status, decode_reply, format_error_reply, parse_request
 from tcp_bridge.motion import Cia402, State, Timing, decode_state
 
@@ -134,7 +134,11 @@ def test_enable_after_a_power_cycle_resets_the_node_writes_parameters_then_enabl
                            "parameters": {"velocity": 2.0, "acceleration": 30.0}}])
     node = nodes[1]
     ok(engine, "1S05=2.5")  # stored and written at once: 2500 inc/s
-    node.values[(0x6081, 0)] = 1  # the drive "forgot" it: evidence of a power cycle
+    ok(engine, "1S04=1")  # the bridge saw the drive powered
+    ok(engine, "1S04=0")
+    node.power_cycle()  # it forgot 6081h and fell back to SWITCH ON DISABLED: evidence
+    node.resets = 0
+    assert ok(engine, "1R04") == "0"
     node.log.clear()
     ok(engine, "1S04=1")
     assert node.resets == 1  # NMT reset node (spec 04: "If PowerCycle then NodeReset")
@@ -149,6 +153,22 @@ def test_enable_after_a_power_cycle_resets_the_node_writes_parameters_then_enabl
     node.log.clear()
     ok(engine, "1S04=1")  # no power cycle since: no reset, nothing to do
     assert node.resets == 1 and controlwords(node) == []
+
+
+def test_one_changed_value_is_not_a_power_cycle() -> None:
+    # Issue 22 item 2: another master (a studio) writes 6081h; the drive never fell
+    # back to SWITCH ON DISABLED. Enable writes the bridge's value back, no NMT reset.
+    engine, nodes = make([{"device": 5, "node_id": 1, "position_factor": 1000,
+                           "increments_per_revolution": IPR}])
+    node = nodes[1]
+    for line in ("1S05=2.5", "1S04=1", "1S04=0"):
+        ok(engine, line)
+    node.values[(0x6081, 0)] = 1
+    node.log.clear()
+    ok(engine, "1S04=1")
+    assert node.resets == 0
+    assert downloads(node, 0x6081) == [(0x6081, 0, 2500)]
+    assert decode_state(node.statusword) is State.OPERATION_ENABLED
 
 
 def test_disable_halts_then_disables_operation_then_shuts_down() -> None:
@@ -882,21 +902,18 @@ def test_move_nak_comes_within_one_ack_timeout() -> None:
 
 
 def test_82_reads_the_drive_mode_not_a_remembered_one() -> None:
-    # Mode changes the bridge did not make (raw SDO 80/81, another master, a
-    # drive reset) must not change the meaning of 82: the drive's 6061h decides.
+    # Mode changes the bridge did not make (another master, a drive reset) must
+    # not change the meaning of 82: the drive's 6061h decides. (S81 refuses to
+    # write these objects of an enabled axis: another master writes them here.)
     engine, nodes = make()
     node = enabled(engine, nodes)
-    ok(engine, "1S80=0x60600001")
-    ok(engine, "1S81=3")  # profile velocity, behind the bridge's back
-    ok(engine, "1S80=0x60FF0004")
-    ok(engine, "1S81=2000")
-    ok(engine, "1S80=0x60400002")
-    ok(engine, "1S81=15")  # halt released: running, sw bit 10 set, bit 12 clear
+    node.download(0x6060, 0, (3).to_bytes(1, "little"))  # profile velocity, behind its back
+    node.download(0x60FF, 0, (2000).to_bytes(4, "little"))
+    node.download(0x6040, 0, (15).to_bytes(2, "little"))  # halt released: sw 10 set, 12 clear
     assert ok(engine, "1R82") == "0"
     ok(engine, "1S05=1")
     ok(engine, "1S00=3")  # a velocity move the bridge made ...
-    ok(engine, "1S80=0x60600001")
-    ok(engine, "1S81=1")  # ... then profile position, behind its back
+    node.download(0x6060, 0, (1).to_bytes(1, "little"))  # ... then profile position
     assert node.statusword & 0x1400 == 0x0400  # target reached, no set-point acknowledge
     assert ok(engine, "1R82") == "1"
 

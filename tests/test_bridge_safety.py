@@ -317,7 +317,7 @@ def test_enable_during_a_quick_stop_ramp_lets_the_ramp_finish(bridge: SimBridge)
     b = bridge
     b.ok("2S04=1", "2S28=5")  # a slow quick stop ramp: 5 mm/s^2
     run_velocity_move(b, 2, speed="20")
-    b.ok("2S80=0x60400002", "2S81=0x000B")  # quick stop, as an input or another master
+    b.sim.write(2, 0x6040, 0, (0x000B).to_bytes(2, "little"))  # quick stop: an input or another master
     assert b.velocity(2) > 0
     b.ok("2S04=1")
     assert not b.now(2).unsafe_stops  # the power stage never went off while it moved

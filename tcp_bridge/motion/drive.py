@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import time
 from enum import Enum
-from typing import Callable, Final, List, Optional, Protocol
+from typing import Callable, Final, FrozenSet, List, Optional, Protocol
 
 from epos_link.cia402 import State, state_from_statusword
 
@@ -77,6 +77,7 @@ class Cia402(MoveStarts):
         self._last_state: Optional[State] = None
         self.power_cycle_evidence: Optional[str] = None
         self.restore_pending = True  # the first enable writes the stored parameters
+        self.fell_back = False  # seen falling to SWITCH ON DISABLED since the last enable
         self.halt_owed = False  # a move's outcome was unknown and its halt not yet sent
         self.listeners: List[Callable[[str], None]] = []
         self.coasting: Callable[[], bool] = lambda: self.port.read(VELOCITY_ACTUAL, 0) != 0
@@ -96,6 +97,7 @@ class Cia402(MoveStarts):
                         "stop input): the next enable checks and writes its parameters",
                         self.port.name, self._last_state.name, state.name)
             self.restore_pending = True
+            self.fell_back = True
             self._tell("suspect")
         self._last_state = state
 
@@ -267,23 +269,41 @@ class Cia402(MoveStarts):
 
     # -- enable (rules 1 to 3) -----------------------------------------------------------
 
-    def enable(self, restore: Optional[Restore] = None) -> None:
+    def enable(self, restore: Optional[Restore] = None,
+               modes: Optional[FrozenSet[int]] = None) -> None:
         """S04=1: to OPERATION ENABLED with halt set, one checked step at a time.
 
-        An enabled axis is left exactly as it is. After a power cycle (rule 3)
-        the node is reset and the parameters written first.
+        An enabled axis is left exactly as it is. A drive in a mode outside
+        ``modes`` (a cyclic mode left by another tool, or one spec 31 does not
+        allow) is not enabled: in a cyclic mode it would follow its set-point
+        objects at once (rule 2). After a power cycle (rule 3) the node is reset
+        and the parameters written first.
         """
         state = self.state()
         if state is State.OPERATION_ENABLED:
             return
         if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             raise DeviceFailure(f"{self.port.name}: in {state.name}; reset it (S17) first")
+        if modes is not None:
+            mode = self.port.read(MODES_DISPLAY, 0)
+            if mode not in modes and mode != 0:  # 0: no mode, nothing can move
+                log.error("%s: not enabled: the drive is in mode %d (6061h), not one of the "
+                          "profile modes %s; set one with S07 first", self.port.name, mode,
+                          sorted(modes))
+                raise DeviceFailure(f"{self.port.name}: not enabled in mode {mode}")
         if state is State.QUICK_STOP_ACTIVE:
             self._end_of_quick_stop(Deadline(self._clock, self.timing.ack_timeout))
         if self.power_cycle_evidence is None and restore is not None:
             differs = restore.differs()
-            if differs is not None:
-                self.note_power_cycle(differs)
+            if differs is not None and self.fell_back:
+                self.note_power_cycle(f"{differs}, after a fall back to SWITCH ON DISABLED")
+            elif differs is not None:
+                # One changed value is not evidence (another master, a studio may
+                # write it): no reset, only the bridge's values written back.
+                log.warning("%s: %s, but the drive never fell back to SWITCH ON DISABLED: "
+                            "not a power cycle; the stored parameters are written again",
+                            self.port.name, differs)
+                self.restore_pending = True
         if self.power_cycle_evidence is not None:
             self.reset_node(Why.POWER_CYCLE, wait=True)
         if self.restore_pending and restore is not None:
@@ -296,6 +316,7 @@ class Cia402(MoveStarts):
                             "longer taken as evidence of a power cycle", self.port.name, still)
                 restore.ignore_differences()
         self.restore_pending = False
+        self.fell_back = False
         self._enable_steps(Deadline(self._clock, self.timing.ack_timeout))
 
     def _enable_steps(self, deadline: Deadline) -> None:

@@ -1,8 +1,7 @@
-"""Command 00 Move in drive units, for one axis and the slaves that follow it (29/30).
-
-This module only works out *what* each drive is told (targets, velocities and
-profiles, converted with each axis's own units); *how* a move starts, and the
-safety rules around it, are :meth:`tcp_bridge.motion.Cia402.move` and
+"""00 Move and 90 Combined Move, with the slaves that follow (29/30), and what a stop or
+disable of a master does to them; this module works out *what* each drive is told,
+in drive units, when the request is resolved. *How* a move starts, and the safety
+rules around it, are :meth:`tcp_bridge.motion.Cia402.move` and
 :meth:`~tcp_bridge.motion.Cia402.halt`.
 
 Slave axes (spec 29 Slave Axis, 30 Slave Axis direction): a slave makes the
@@ -15,169 +14,243 @@ same move as its master in user units, mirrored when 30 is -1:
 * the slave borrows its master's profile in user units (05 velocity, 06
   acceleration and deceleration), so both run the same trapezoid. The slave's
   own profile values go back to its drive before it next moves on its own;
-* homing (00=9): each axis homes with its own method and speeds (40-43), as a
-  gantry's two sides each find their own switch; positions are not kept
-  together while homing. Home the slave alone first if it must not move with
-  its master;
-* stop (00=8) halts both.
+* homing (00=9): each axis homes with its own method and speeds (40-43);
+* stop (00=8) and disable (04=0) of the master act on the slaves its move
+  started (:attr:`AxisRuntime.followers`), whatever 29 says by then: they are
+  halted (a disable halts them and leaves them enabled; only the master was
+  asked to lose power).
 
-A master and a slave on the same bus move in **one bus job**: both are
-prepared, then their start writes go out back to back
-(:meth:`~tcp_bridge.motion.Cia402.move`), so they start a few SDO round trips
-apart. A slave on another bus moves as a companion job of the engine
-(:mod:`tcp_bridge.engine`), gated on the master's acceptance.
+Every value (targets, velocities, the slaves and their directions) is taken
+from the state the earlier requests left, when the request is resolved, so a
+write that arrives later (S02, S22, S29 from another port) cannot change a
+move already accepted. A master and a slave on the same bus move in one bus
+job, started back to back; a slave on another bus is a companion job of the
+engine, gated on the master's acceptance (:mod:`.job`).
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from ..tables.commands import COMMANDS, ObjectRef
+from ..bus.sdo import NodeSilent
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import HomingMove, Move, PositionMove, VelocityMove
-from .axis import check_resolution
-from ..bus.sdo import NodeSilent
-from ..tables.units import Number
+from ..tables.commands import COMMANDS, ObjectRef
+from ..tables.units import Number, Scaling
+from .axis import AxisRuntime, Follower
+from .writes import check_resolution
 
-if TYPE_CHECKING:
-    from .axis import AxisOps
-
-log = logging.getLogger(__name__)
+log = logging.getLogger("tcp_bridge.plan")
 
 PROFILE_VELOCITY = ObjectRef(0x6081)
 PROFILE_ACCELERATION = ObjectRef(0x6083)
 PROFILE_DECELERATION = ObjectRef(0x6084)
+Profile = Dict[ObjectRef, Number]
 
 
 @dataclass(frozen=True)
-class Follower:
-    """A slave that makes its master's move: the axis and its direction (30)."""
+class Part:
+    """One axis's share of a move on another bus: what it runs, and its halt."""
 
-    ops: "AxisOps"
-    direction: int
-
-
-def check_move(ops: "AxisOps", how: int, direction: int = 1,
-               target: Optional[Number] = None) -> None:
-    """Everything about a move that can be checked without the drive (CAN if bad)."""
-    _what(ops, how, direction, target, check_only=True)
+    axis: AxisRuntime
+    run: Callable[[], None]
+    halt: Optional[Callable[[], None]]
 
 
-def _what(ops: "AxisOps", how: int, direction: int, target: Optional[Number],
-          check_only: bool = False) -> Optional[Move]:
-    """The move of ``ops`` in drive units; ``target`` (user units) for a slave."""
+@dataclass(frozen=True)
+class MovePlan:
+    """A move (or stop) of the request's axis, and its companions on other buses."""
+
+    run: Callable[[], None]
+    companions: Tuple[Part, ...] = ()
+    halt: Optional[Callable[[], None]] = None  # halts what ``run`` started
+    stopping: bool = False  # a stop: never gated, every axis is tried (urgent)
+
+
+def _what(axis: AxisRuntime, how: int, direction: int,
+          value: Optional[Number]) -> Callable[[], Move]:
+    """The move of ``axis`` in drive units, checked now, built on the bus thread
+    (a velocity needs the drive's unit, which an EPOS4 tells the first time)."""
+    scaling = axis.scaling()
     if how in (1, 2):
-        user = ops.params.user(ops.addr, 2) if target is None else target
-        if user is None:
-            raise InvalidCommand(f"axis {ops.addr}: no target position (S02) set", cmd=0)
-        user = user * direction
-        scaling = ops.scaling()
+        if value is None:
+            raise InvalidCommand(f"axis {axis.addr}: no target position (S02) set", cmd=0)
+        user = value * direction
         if how == 1:
             raw = scaling.position_to_drive(user)
         else:  # a distance: inverted and scaled, never offset
             raw = scaling.to_drive(user) * scaling.inversion
-        return PositionMove(raw, relative=how == 2)
+        move = PositionMove(raw, relative=how == 2)
+        return lambda: move
     if how == 3:
-        velocity = ops.params.user(ops.addr, 5) if target is None else target
-        if velocity is None:
-            raise InvalidCommand(f"axis {ops.addr}: no velocity (S05) set", cmd=0)
-        scaling = ops.scaling() if check_only else ops.drive_scaling()
-        raw = scaling.velocity_to_drive(velocity * direction) * scaling.inversion
-        check_resolution(ops.addr, COMMANDS[5], velocity, raw, scaling)
-        return VelocityMove(raw)
-    if how == 9:
-        return HomingMove()
-    return None  # 8: stop
+        if value is None:
+            raise InvalidCommand(f"axis {axis.addr}: no velocity (S05) set", cmd=0)
+        velocity = value
+
+        def build(s: Scaling) -> VelocityMove:
+            raw = s.velocity_to_drive(velocity * direction) * s.inversion
+            check_resolution(axis.addr, COMMANDS[5], velocity, raw, s)
+            return VelocityMove(raw)
+        build(scaling)  # range and resolution checked now
+        return lambda: build(axis.with_units(scaling))
+    return lambda: HomingMove()
 
 
-def plan_move(ops: "AxisOps", how: int, followers: Sequence[Follower] = (),
-              target: Optional[Number] = None, direction: int = 1,
-              profile: Optional[Dict[ObjectRef, Number]] = None) -> Callable[[], None]:
-    """00 Move: 1 absolute, 2 relative, 3 velocity, 8 stop, 9 home.
+def _value(axis: AxisRuntime, how: int) -> Optional[Number]:
+    return axis.user(2) if how in (1, 2) else axis.user(5) if how == 3 else None
 
-    ``followers`` are slaves on the same bus, moved in the same job. ``target``
-    and ``direction`` are given when ``ops`` is itself a slave on another bus
-    (a companion job) or an internal axis of command 90; ``profile`` is then its
-    master's (:func:`stored_profile`), borrowed for the move.
-    """
-    drive = ops._drive()
-    for f in followers:
-        f.ops._drive()
-    master_target = target
-    if how in (1, 2) and target is None:
-        master_target = ops.params.user(ops.addr, 2)
-    elif how == 3 and target is None:
-        master_target = ops.params.user(ops.addr, 5)
-    check_move(ops, how, direction, target)
-    for f in followers:
-        check_move(f.ops, how, f.direction, master_target)
+
+def _slave(master: AxisRuntime, axes: Mapping[int, AxisRuntime]) -> Optional[Follower]:
+    slave = axes.get(master.value(29) or 0)
+    if slave is None or slave is master or slave.port is None:
+        return None
+    return Follower(slave, -1 if master.value(30) == -1 else 1)
+
+
+def halt_all(axes: Sequence[AxisRuntime]) -> None:
+    """Halt every axis, whatever the others answer; the first failure is raised last."""
+    failure: Optional[BaseException] = None
+    for axis in axes:
+        try:
+            axis.need_drive().halt()
+        except (DeviceFailure, NodeSilent) as exc:
+            failure = failure or exc
+    if failure is not None:
+        raise failure
+
+
+def _halt(axis: AxisRuntime) -> Optional[Callable[[], None]]:
+    return (lambda: halt_all([axis])) if axis.drive is not None else None
+
+
+def plan_stop(master: AxisRuntime, then: Optional[Callable[[], None]] = None) -> MovePlan:
+    """00=8 (``then`` None) or 04=0 (``then`` the disable): the master and the followers
+    its move started are halted; those on its bus in its own job, first."""
+    master.need_drive()
+    near = [f.axis for f in master.followers if f.axis.config.bus == master.config.bus]
+    far = tuple(Part(f.axis, lambda a=f.axis: halt_all([a]), None)
+                for f in master.followers if f.axis.config.bus != master.config.bus)
+    master.forget_followers()
+    if then is None:
+        return MovePlan(lambda: halt_all([master, *near]), far, stopping=True)
+    disable = then
+
+    def halt_then_disable() -> None:
+        if near:
+            halt_all(near)
+        disable()
+    return MovePlan(halt_then_disable, far, stopping=True)
+
+
+def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) -> MovePlan:
+    """00 Move: 1 absolute, 2 relative, 3 velocity, 8 stop, 9 home."""
+    drive = master.need_drive()
     if how == 8:
-        return lambda: halt_all([ops, *(f.ops for f in followers)])
+        return plan_stop(master)
+    value = _value(master, how)
+    slave = _slave(master, axes)
+    master_move = _what(master, how, 1, value)
+    followers = (slave,) if slave is not None else ()
+    moves: List[Tuple[AxisRuntime, Callable[[], Move]]] = [(master, master_move)]
+    companions: Tuple[Part, ...] = ()
+    near: List[AxisRuntime] = []
+    if slave is not None:
+        slave.axis.need_drive()
+        slave_move = _what(slave.axis, how, slave.direction, value)
+        if slave.axis.config.bus == master.config.bus:
+            moves.append((slave.axis, slave_move))
+            near.append(slave.axis)
+        else:
+            profile = stored_profile(master)
+            companions = (Part(slave.axis, _single(slave.axis, slave_move, profile),
+                               _halt(slave.axis)),)
+    master_profile_user = (master.user(5), master.user(6))
+    master.lead(followers)
 
     def move() -> None:
-        axes = [(ops, direction, target)] + [(f.ops, f.direction, master_target)
-                                             for f in followers]
-        if followers:
-            share_profile(ops, [f.ops for f in followers])
-        elif profile is not None:
-            _write_profile(ops, profile)
-        elif ops.borrowed_profile:
-            give_back_profile(ops)
-        moves = []
-        for axis, sign, value in axes:
-            what = _what(axis, how, sign, value)
-            assert what is not None
-            moves.append((axis._drive(), what))
-        for axis, _, _ in axes:
-            axis.moving_ack = 0  # spec 86: 0 before the move ...
+        if near:
+            share_profile(master, near, master_profile_user)
+        elif master.borrowed_profile:
+            give_back_profile(master)
+        _start(drive, moves)
+    return MovePlan(move, companions, _halt_near(master, near))
 
-        def accepted(i: int) -> None:
-            axes[i][0].moving_ack = 1  # ... and 1 once the drive accepted it
-        drive.move(moves, accepted)
+
+def _halt_near(master: AxisRuntime, near: Sequence[AxisRuntime]) -> Callable[[], None]:
+    axes = [master, *near]
+    return lambda: halt_all(axes)
+
+
+def _single(axis: AxisRuntime, what: Callable[[], Move],
+            profile: Optional[Profile]) -> Callable[[], None]:
+    """A companion's move: with its master's profile (a slave) or its own."""
+    def move() -> None:
+        if profile is not None:
+            _write_profile(axis, profile)
+        elif axis.borrowed_profile:
+            give_back_profile(axis)
+        _start(axis.need_drive(), [(axis, what)])
     return move
 
 
-def _profile_in_user_units(master: "AxisOps") -> Dict[ObjectRef, Number]:
-    """The master's profile (05, 06) in user units: stored values, else its drive's."""
-    port = master._port()
-    velocity = master.params.user(master.addr, 5)
-    acceleration = master.params.user(master.addr, 6)
-    profile: Dict[ObjectRef, Number] = {}
-    if velocity is not None:
-        profile[PROFILE_VELOCITY] = abs(velocity)
-    else:
-        raw = port.read(PROFILE_VELOCITY.index, 0)
-        profile[PROFILE_VELOCITY] = master.drive_scaling().velocity_from_drive(raw)
-    accel_scaling = master.scaling()
-    for obj in (PROFILE_ACCELERATION, PROFILE_DECELERATION):
-        if acceleration is not None:
-            profile[obj] = acceleration
-        else:
-            profile[obj] = accel_scaling.acceleration_from_drive(port.read(obj.index, 0))
-    return profile
+def _start(drive: object, moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]]) -> None:
+    pairs = [(axis.need_drive(), what()) for axis, what in moves]
+    for axis, _ in moves:
+        axis.moving_ack = 0  # spec 86: 0 before the move ...
+
+    def accepted(i: int) -> None:
+        moves[i][0].moving_ack = 1  # ... and 1 once the drive accepted it
+    pairs[0][0].move(pairs, accepted)
 
 
-def stored_profile(master: "AxisOps") -> Optional[Dict[ObjectRef, Number]]:
-    """The master's profile from its stored 05 and 06 alone (no drive access, for a
-    slave on another bus); None unless both are stored."""
-    velocity = master.params.user(master.addr, 5)
-    acceleration = master.params.user(master.addr, 6)
+def plan_combined(axes: Mapping[int, AxisRuntime], internal: Sequence[AxisRuntime],
+                  how: int) -> MovePlan:
+    """Spec 90 with 3.2: 0 stop, 1 LINR (relative by each 02), 2 LINA to zero."""
+    parts = []
+    for axis in internal:
+        if how == 0:
+            parts.append(Part(axis, lambda a=axis: halt_all([a]), None))
+            continue
+        what = _what(axis, 2, 1, axis.user(2)) if how == 1 else _what(axis, 1, 1, 0.0)
+        axis.lead(())
+        parts.append(Part(axis, _single(axis, what, None), _halt(axis)))
+    return MovePlan(lambda: None, tuple(parts), stopping=how == 0)
+
+
+def stored_profile(master: AxisRuntime) -> Optional[Profile]:
+    """The master's profile from its 05 and 06 alone (no drive access, for a slave on
+    another bus); None unless both are set."""
+    velocity, acceleration = master.user(5), master.user(6)
     if velocity is None or acceleration is None:
         return None
     return {PROFILE_VELOCITY: abs(velocity), PROFILE_ACCELERATION: acceleration,
             PROFILE_DECELERATION: acceleration}
 
 
-def share_profile(master: "AxisOps", slaves: Sequence["AxisOps"]) -> None:
-    """Write the master's profile into each slave, keeping the slave's own to give back."""
-    profile = _profile_in_user_units(master)
+def share_profile(master: AxisRuntime, slaves: Sequence[AxisRuntime],
+                  user: Tuple[Optional[Number], Optional[Number]]) -> None:
+    """Write the master's profile (``user``: its 05 and 06 when the move was resolved,
+    else its drive's values) into each slave, keeping the slave's own to give back."""
+    port = master.need_port()
+    velocity, acceleration = user
+    profile: Profile = {}
+    if velocity is not None:
+        profile[PROFILE_VELOCITY] = abs(velocity)
+    else:
+        raw = port.read(PROFILE_VELOCITY.index, 0)
+        profile[PROFILE_VELOCITY] = master.drive_scaling().velocity_from_drive(raw)
+    for obj in (PROFILE_ACCELERATION, PROFILE_DECELERATION):
+        if acceleration is not None:
+            profile[obj] = acceleration
+        else:
+            profile[obj] = master.scaling().acceleration_from_drive(port.read(obj.index, 0))
     for slave in slaves:
         _write_profile(slave, profile)
 
 
-def _write_profile(slave: "AxisOps", profile: Dict[ObjectRef, Number]) -> None:
-    port = slave._port()
+def _write_profile(slave: AxisRuntime, profile: Profile) -> None:
+    port = slave.need_port()
     scaling = slave.drive_scaling()
     writes: List[Tuple[ObjectRef, int]] = []
     for obj, user in profile.items():
@@ -190,25 +263,13 @@ def _write_profile(slave: "AxisOps", profile: Dict[ObjectRef, Number]) -> None:
         port.write(obj.index, obj.subindex, raw)
 
 
-def give_back_profile(ops: "AxisOps") -> None:
+def give_back_profile(axis: AxisRuntime) -> None:
     """Before a slave moves on its own: its own profile values back into its drive."""
-    port = ops._port()
-    for obj, raw in list(ops.borrowed_profile.items()):
+    port = axis.need_port()
+    for obj, raw in list(axis.borrowed_profile.items()):
         port.write(obj.index, obj.subindex, raw)
-        del ops.borrowed_profile[obj]
+        del axis.borrowed_profile[obj]
 
 
-def halt_all(axes: Sequence["AxisOps"]) -> None:
-    """Halt every axis, whatever the others answer; the first failure is raised last."""
-    failure: Optional[BaseException] = None
-    for ops in axes:
-        try:
-            ops._drive().halt()
-        except (DeviceFailure, NodeSilent) as exc:
-            failure = failure or exc
-    if failure is not None:
-        raise failure
-
-
-__all__ = ["Follower", "check_move", "give_back_profile", "halt_all", "plan_move",
-           "share_profile", "stored_profile"]
+__all__ = ["MovePlan", "Part", "give_back_profile", "halt_all", "plan_combined", "plan_move",
+           "plan_stop", "share_profile", "stored_profile"]

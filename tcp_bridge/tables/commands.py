@@ -280,6 +280,21 @@ _TABLE: Tuple[CommandSpec, ...] = (
 COMMANDS: Final[Mapping[int, CommandSpec]] = MappingProxyType({c.number: c for c in _TABLE})
 """Every command of spec rev 2.3, section 4, by number."""
 
+OWN_RULES: Final[Mapping[int, str]] = MappingProxyType({
+    0: "move", 4: "inhibit", 7: "mode", 11: "detailed_error", 12: "position",
+    13: "position_window", 14: "velocity", 16: "reset_node", 17: "fault_reset",
+    18: "general_error", 19: "device_code", 33: "display_limit", 34: "display_limit",
+    80: "sdo_selector", 81: "sdo_access", 82: "target_reached", 83: "end_switch",
+    85: "write_parameters", 86: "moving_ack", 90: "combined_move", 91: "debug", 99: "version",
+})
+"""The rows with a rule of their own, by the name of their handler in :mod:`tcp_bridge.plan`;
+every other row is handled by its kind (``CommandKind.value``)."""
+
+
+def rule_of(spec: CommandSpec) -> str:
+    """The name of the handler of ``spec``: its own rule, else its kind."""
+    return OWN_RULES.get(spec.number, spec.kind.value)
+
 
 def lookup(cmd: int) -> CommandSpec:
     """The spec of command ``cmd``; :class:`InvalidCommand` if the table has none."""
