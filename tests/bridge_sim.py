@@ -197,6 +197,23 @@ class SimBridge:
         """The axis velocity in increments per second (606Ch is in rpm on an EPOS4)."""
         return float(self.now(node).velocity_increments)
 
+    # -- another master on the same drives ------------------------------------------------
+
+    def other_master_write(self, node: int, index: int, sub: int, value: int, size: int) -> None:
+        """Write ``value`` (``size`` bytes, two's complement if negative) to object
+        ``index``/``sub`` of drive ``node`` as another master does, bypassing the bridge,
+        which is not told: for a drive behind the gateway an SDO download on the
+        drives' CAN bus (another CANopen master), for the gateway's own node a write to
+        its dictionary (maxon's studio on its USB port). The drive checks it as any SDO
+        download; a refusal raises :class:`epos_link.simulator.device.Abort` with the
+        SDO abort code (CiA 301 7.2.4.3.17)."""
+        data = (value & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
+        self.sim.write(node, index, sub, data)
+
+    def other_master_read(self, node: int, index: int, sub: int, *, signed: bool = False) -> int:
+        """Read object ``index``/``sub`` of drive ``node`` the same way (an SDO upload)."""
+        return int.from_bytes(self.sim.read(node, index, sub), "little", signed=signed)
+
     def wait_until(self, what: Callable[[], bool], timeout: float = 10.0, why: str = "") -> None:
         wait_until(what, timeout, why or "condition never became true")
 

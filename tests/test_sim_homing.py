@@ -139,6 +139,52 @@ def test_halt_interrupts_homing() -> None:
     assert d.statusword & BITS == COMPLETED
 
 
+def test_a_falling_start_bit_interrupts_homing() -> None:
+    # CiA 402-2 6.6.1.1: controlword bit 4 "homing operation start", 1 -> 0
+    # interrupts the homing: the axis stops on 609Ah, 0/0/1 at rest.
+    d = homing_drive(18, **SWITCHES)
+    start(d)
+    d.advance(1.0)
+    d.write_controlword(ENABLE)
+    assert d.homing_status is HomingStatus.IDLE
+    d.advance(0.05)
+    assert d.velocity > 0 and d.statusword & BITS == 0  # decelerating: bit 10 waits for rest
+    d.advance(0.1)
+    assert d.velocity == 0 and d.statusword & BITS == IDLE  # interrupted: 0/0/1, not attained
+    assert d.statusword & REFERENCED == 0
+    d.advance(10.0)
+    assert d.position == 100  # it stays where it stopped
+    start(d)  # a new rising edge starts it again, from here
+    d.advance(60.0)
+    assert d.statusword & BITS == COMPLETED and d.motion_starts == 2
+
+
+@pytest.mark.parametrize("method,missing,stop", [
+    (18, "positive_limit", 600), (17, "negative_limit", -600), (2, "positive_limit", 600),
+    (7, "home_switch", 600), (23, "home_switch", 600), (11, "home_switch", -600),
+    (29, "home_switch", -600)])
+def test_a_switch_that_is_not_fitted_makes_homing_fail(method: int, missing: str,
+                                                       stop: int) -> None:
+    # The search runs on to the end stop, where the axis stops: "homing error
+    # occurred, velocity is 0" = 1/0/1 (CiA 402-2 6.6 table); not referenced.
+    d = homing_drive(method, **SWITCHES)
+    setattr(d.switches, missing, None)
+    start(d)
+    d.advance(0.5)
+    assert d.statusword & BITS == IN_PROGRESS and d.velocity != 0
+    d.advance(30.0)
+    assert d.homing_status is HomingStatus.ERROR
+    assert d.velocity == 0 and d.statusword & BITS == 0x2000 | 0x0400
+    assert d.statusword & REFERENCED == 0
+    assert d.position == stop  # the counter was not set to 30B0h
+    assert d.state is State.OPERATION_ENABLED  # chosen: no fault (homing.py)
+    d.write_controlword(ENABLE)  # bit 4 back to 0: the error stays until a new start
+    assert d.statusword & BITS == 0x2000 | 0x0400
+    setattr(d.switches, missing, 500.0 if stop > 0 else -500.0)
+    start(d)  # a new start clears it
+    assert d.statusword & BITS == IN_PROGRESS
+
+
 def test_homing_error_on_following_error() -> None:
     d = homing_drive(18, **SWITCHES)
     start(d)

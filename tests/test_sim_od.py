@@ -86,7 +86,7 @@ def test_eds_identity_values() -> None:
     assert s.read_value(0x1008) == "EPOS4"
     assert s.read_value(0x1018, 1) == 0x000000FB  # maxon motor's vendor id
     assert s.read_value(0x1018, 0) == 4
-    assert s.read_value(0x6502) == 0x25  # pp, pv, hm
+    assert s.read_value(0x6502) == 0xA5  # pp, pv, hm, csp (CiA 402-2 6502h bits 0, 2, 5, 7)
 
 
 def test_eds_node_id_substitution() -> None:
@@ -98,7 +98,7 @@ def test_eds_node_id_substitution() -> None:
 
 def test_eds_limits_and_fast_defaults() -> None:
     s = fresh()
-    assert (s.variable(0x6060, 0).min, s.variable(0x6060, 0).max) == (1, 6)
+    assert (s.variable(0x6060, 0).min, s.variable(0x6060, 0).max) == (1, 10)
     assert s.variable(0x6081, 0).max == s.variable(0x607F, 0).max
     assert s.read_value(0x6081) == 1000 and s.read_value(0x6083) == 10000
     assert s.read_value(0x2005) == 500 and s.read_value(0x2006) == 500
@@ -136,7 +136,7 @@ def test_read_string_and_signed() -> None:
     ("write", 0x6040, 0, b"\6\0\0", 0x06070010),  # 3 bytes is never right
     ("write", 0x6081, 0, b"\0\0\0\0\0", 0x06070010),  # too long
     ("write", 0x6040, 0, b"\6\0\1\0", 0x06070010),  # non-zero surplus
-    ("write", 0x6060, 0, b"\x07", 0x06090030),  # above HighLimit
+    ("write", 0x6060, 0, b"\x0b", 0x06090030),  # above HighLimit
     ("write", 0x6060, 0, b"\x00", 0x06090030),  # below LowLimit
     ("write", 0x6081, 0, struct.pack("<I", 0), 0x06090030),
     ("write", 0x6083, 0, struct.pack("<I", 100_000_001), 0x06090030),  # above HighLimit
@@ -159,7 +159,7 @@ def test_read_only_check_comes_before_length_check() -> None:
 def test_refused_write_keeps_old_value() -> None:
     s = fresh()
     with pytest.raises(SdoAbortedError):
-        s.write(0x6060, 0, b"\x09")
+        s.write(0x6060, 0, b"\x0b")
     assert s.read_value(0x6060) == 1
 
 
@@ -319,8 +319,8 @@ def test_local_node_upload_download_share_the_store() -> None:
     ("up", 0x2100, 0, None, 0x06010001),
     ("down", 0x6041, 0, b"\0\0", 0x06010002),
     ("down", 0x6040, 0, b"\0", 0x06070010),
-    ("down", 0x6060, 0, b"\x09", 0x06090030),
-    ("down", 0x6060, 0, b"\x09\x00\x00\x00", 0x06090030),
+    ("down", 0x6060, 0, b"\x0b", 0x06090030),
+    ("down", 0x6060, 0, b"\x0b\x00\x00\x00", 0x06090030),
     ("down", 0x1010, 1, b"nope", 0x08000020),
 ])
 def test_local_node_abort_codes(op: str, index: int, sub: int, data: bytes | None, code: int) -> None:
@@ -372,7 +372,7 @@ def test_sdo_server_expedited_download_size_indicated() -> None:
     (request(0x22, 0x6040, 0, b"\x06\x00\x01\x00"), 0x06070010),
     (request(0x40, 0x2100, 0), 0x06010001),
     (request(0x40, 0x1234, 0), 0x06020000),
-    (request(0x22, 0x6060, 0, b"\x08\0\0\0"), 0x06090030),
+    (request(0x22, 0x6060, 0, b"\x0b\0\0\0"), 0x06090030),
 ])
 def test_sdo_server_abort_frames(frame: bytes, code: int) -> None:
     node, _, net = node_with_store()

@@ -21,7 +21,15 @@ What is modelled (CiA 402-2 V4.0 sections in brackets), in EPOS4 units
   velocity reached, bit 12 = speed is zero;
 * homing mode 6 [6.6]: travels at the homing speeds to virtual switches
   (:mod:`~epos_link.simulator.homing`), statusword bits 13/12/10 as in the
-  6.6 table; halt interrupts it;
+  6.6 table; halt (bit 8) or a falling bit 4 interrupts it [6.6.1.1] (0/0/1
+  at rest), a switch that is not fitted makes it fail (1/0/1 at rest);
+* cyclic synchronous position mode 8 (csp): in OPERATION ENABLED a new 607Ah
+  is the position demand at once, no bit 4 handshake, and halt is not
+  evaluated (csp "uses no mode specific bits of the controlword", CiA 402-2
+  csp "use of controlword and statusword", as drive manuals quote it, e.g.
+  Parker SLVD-N 13.1.11.2, Nanotec N5 "Cyclic Synchronous Position");
+  statusword bit 10 reserved (0), bit 12 "drive follows the command value",
+  bit 13 following error. See :mod:`~epos_link.simulator.kinematics`;
 * trapezoidal profiles in closed form (:mod:`~epos_link.simulator.motion`),
   velocity 6081h <= 607Fh, 6080h, accelerations 6083h/6084h/6085h <= 60C5h,
   planned in :mod:`~epos_link.simulator.kinematics` (which ramp for which state);
@@ -47,8 +55,10 @@ Decisions a client may notice (**chosen** where the manuals are silent):
 * While a 605Bh/605Ch ramp runs, new set-points are ignored, enable
   operation is ignored, and shutdown, disable voltage or quick stop replace
   the pending transition.
-* 607Dh software limits clamp a pp target (CiA 402-2 6.5.2) and set sw bit 11
-  until the next unclamped set-point; min >= max switches them off. Profile
+* 607Dh software limits clamp a pp or csp target (CiA 402-2 6.5.2; for csp
+  as Nanotec N5 describes it, bit 11 "demand position above or below the
+  limit values set in 607Dh") and set sw bit 11 until the next unclamped
+  set-point; min >= max switches them off. Profile
   velocity clamped by 607Fh/6080h also sets bit 11 (EPOS4: bit 11 "internal
   limit active" includes velocity limiting). Limit switch inputs are in 60FDh.
 * A relative target (cw bit 6) is relative to the preceding target; after
@@ -284,6 +294,11 @@ class Drive(Kinematics):
             bit12, bit13 = self._ack, self._following_error
         elif self._mode is Mode.PROFILE_VELOCITY:
             bit12 = at_rest
+        elif self._mode is Mode.CYCLIC_SYNC_POSITION:
+            # csp: bit 10 reserved, 12 "drive follows the command value" (607Ah is
+            # the input of the position loop), 13 following error.
+            bit12 = st is State.OPERATION_ENABLED and self._pending is None
+            bit13 = self._following_error
         else:  # homing, CiA 402-2 6.6 table: bits 13/12/10
             status = self._homing_status
             bit13 = status is HomingStatus.ERROR
@@ -410,10 +425,16 @@ class Drive(Kinematics):
         command = decode_command(cw, previous)
         if command is not None:
             self._command(command)
-        rising = cw & ~previous
-        if rising & CW.HALT and self._homing_status is HomingStatus.RUNNING:
-            self._interrupt()  # halt interrupts a homing; a new start is needed
-        if self._state is not state_before or self._pending != pending_before or (cw ^ previous) & CW.HALT:
+        rising, falling = cw & ~previous, previous & ~cw
+        # CiA 402-2 6.6.1.1: halt (bit 8) and a falling "homing operation start"
+        # (bit 4, 1 -> 0) interrupt a homing; the axis stops on 609Ah and a new
+        # start (bit 4 0 -> 1) is needed. The statusword then reads 0/0/1 at rest.
+        interrupted = (rising & CW.HALT or falling & CW.NEW_SET_POINT) \
+            and self._homing_status is HomingStatus.RUNNING
+        if interrupted:
+            self._interrupt()
+        if self._state is not state_before or self._pending != pending_before \
+                or (cw ^ previous) & CW.HALT or interrupted:
             self._plan()
         if rising & CW.NEW_SET_POINT and self._state is State.OPERATION_ENABLED and self._pending is None:
             if self._mode is Mode.PROFILE_POSITION:
@@ -449,6 +470,15 @@ class Drive(Kinematics):
             self._interrupt()
             self._plan()
             self._track_goal("mode change")
+            self._run_until(self._now)
+
+    def on_target_position(self, value: Value) -> None:
+        """607Ah: a set-point for pp at the next cw bit 4; in csp, followed at once."""
+        self.store.set(0x607A, 0, value)
+        if self._mode is Mode.CYCLIC_SYNC_POSITION and self._state is State.OPERATION_ENABLED \
+                and self._pending is None:
+            self._plan()
+            self._track_goal("target position (csp)")
             self._run_until(self._now)
 
     def on_target_velocity(self, value: Value) -> None:

@@ -31,6 +31,16 @@ index, 33/34 index negative/positive, 35 and 37 actual position (no motion,
 complete at once). Simplification, **chosen**: the home switch methods
 approach the switch from the side the axis is on and search the index (or
 edge) backwards; the variants within 7..14 and 23..30 do not differ here.
+
+A homing that fails: a limit or home switch set to ``None`` is not fitted.
+The search for it then runs on to the end stop in its direction (for the
+home switch methods the direction CiA 402-2 6.6 draws first: positive for
+7..10 and 23..26, negative for 11..14 and 27..30), where the axis stops and
+the homing ends in error: statusword bit 13 "homing error", bit 10 = 1 once
+the velocity is 0 (CiA 402-2 6.6, table of bits 13/12/10: 1 0 1 "homing
+error occurred, velocity is 0"). **Chosen**: the drive raises no fault and
+stays in OPERATION ENABLED (a real axis pushed against a stop would likely
+also trip the following error 8611h; ``inject_fault`` models that).
 """
 from __future__ import annotations
 
@@ -65,12 +75,13 @@ class VirtualSwitches:
     Defaults are **chosen** for a 2000 increments/revolution encoder: limit
     switches at +-5 revolutions, the home switch half a revolution positive,
     end stops a further half revolution out, an index pulse every revolution
-    at ``index_phase``.
+    at ``index_phase``. A switch set to ``None`` is not fitted: a homing that
+    searches for it fails at the end stop.
     """
 
-    negative_limit: float = -10_000.0
-    positive_limit: float = 10_000.0
-    home_switch: float = 1_000.0
+    negative_limit: float | None = -10_000.0  # None: not fitted
+    positive_limit: float | None = 10_000.0
+    home_switch: float | None = 1_000.0
     negative_stop: float = -11_000.0
     positive_stop: float = 11_000.0
     index_phase: float = 0.0
@@ -88,6 +99,7 @@ class Leg:
     target: float  # increments, physical frame
     speed: float  # increments per second
     what: str
+    fails: bool = False  # the homing ends in error when this leg ends (no switch found)
 
 
 def plan_homing(method: int, position: float, switches: VirtualSwitches, *,
@@ -107,7 +119,11 @@ def plan_homing(method: int, position: float, switches: VirtualSwitches, *,
         direction = 1 if method == 34 else -1
         legs.append(Leg(switches.next_index(position, direction, ipr), zero_speed, "index search"))
     else:
-        direction, switch, hard = _switch_of(method, position, switches)
+        direction, found, hard = _switch_of(method, position, switches)
+        if found is None:  # the switch is not fitted: the search ends on the end stop
+            stop = switches.positive_stop if direction > 0 else switches.negative_stop
+            return [Leg(stop, switch_speed, "switch search (no switch found)", fails=True)]
+        switch = found
         if hard:
             legs.append(Leg(switch, switch_speed, "end stop search"))
         else:
@@ -123,13 +139,17 @@ def plan_homing(method: int, position: float, switches: VirtualSwitches, *,
     return legs
 
 
-def _switch_of(method: int, position: float, sw: VirtualSwitches) -> tuple[int, float, bool]:
-    """(search direction, switch position, is it a hard end stop)."""
+def _switch_of(method: int, position: float,
+               sw: VirtualSwitches) -> tuple[int, float | None, bool]:
+    """(search direction, switch position or None if not fitted, is it a hard end stop)."""
     if method in CURRENT_THRESHOLD:
         positive = method in (-1, -3)
         return (1, sw.positive_stop, True) if positive else (-1, sw.negative_stop, True)
     if method in LIMIT_SWITCH:
         positive = method in (2, 18)
         return (1, sw.positive_limit, False) if positive else (-1, sw.negative_limit, False)
+    if sw.home_switch is None:
+        # CiA 402-2 6.6: methods 7..10 and 23..26 start positive, 11..14 and 27..30 negative.
+        return (1 if method in (7, 8, 9, 10, 23, 24, 25, 26) else -1), None, False
     direction = 1 if sw.home_switch >= position else -1
     return direction, sw.home_switch, False

@@ -9,12 +9,19 @@ come from the dictionary in EPOS4 units and are converted once, here, with
 
 =====================  =======================================================
 OPERATION ENABLED      605Bh/605Ch ramp pending: stop on 6084h; homing: legs
-                       on 609Ah; halt: 6084h or, 605Dh = 2, 6085h; pp: to the
-                       target; pv: to 60FFh (limited by 607Fh, 6080h)
+                       on 609Ah; csp: to 607Ah, halt or not; halt: 6084h or,
+                       605Dh = 2, 6085h; pp: to the target; pv: to 60FFh
+                       (limited by 607Fh, 6080h)
 QUICK STOP ACTIVE      605Ah 1/5: 6084h, else 6085h
 FAULT REACTION ACTIVE  605Eh 1: 6084h, 2: 6085h (power stage on)
 any other state        power stage off: coast on ``coast_deceleration``
 =====================  =======================================================
+
+Cyclic synchronous position (csp, mode 8): the master's 607Ah is the position
+demand at once. A real csp drive has no trajectory generator and expects a
+new set-point every sync period; the simulator, **chosen**, lets its position
+loop follow a set-point (even a jump) at the drive's maxima, 607Fh/6080h and
+60C5h, instead of tripping a following error, clamped to 607Dh like a pp target.
 """
 from __future__ import annotations
 
@@ -75,11 +82,17 @@ class Kinematics:
 
         def _update_ack(self) -> None: ...
 
+        def _clamp_position(self, target: int) -> tuple[int, bool]: ...
+
     # -- motion starts -----------------------------------------------------------------------
 
     def _moving_goal(self) -> bool:
         """Whether the drive is heading for motion of its own (not a ramp to rest)."""
-        if self._state is not State.OPERATION_ENABLED or self._pending is not None or self._cw & CW.HALT:
+        if self._state is not State.OPERATION_ENABLED or self._pending is not None:
+            return False
+        if self._mode is Mode.CYCLIC_SYNC_POSITION:  # halt is not evaluated in csp
+            return self._target is not None and not self._target_reached
+        if self._cw & CW.HALT:
             return False
         if self._mode is Mode.PROFILE_POSITION:
             return self._target is not None and not self._target_reached
@@ -134,6 +147,21 @@ class Kinematics:
         to_a = u.acceleration_to_inc_s2
         return u.velocity_to_inc_s(max(v, 0)), to_a(acc), to_a(dec), to_a(qs)
 
+    def _follow_set_point(self) -> None:
+        """csp: 607Ah (clamped to 607Dh) is the position demand from now on."""
+        target, self._clamped = self._clamp_position(self.store.get_int(0x607A))
+        physical = target - self._offset
+        if physical != self._target:
+            # Already there (e.g. enabled on 607Ah = the position): nothing to move.
+            at_rest_on_it = physical == self._physical() and self.velocity_increments == 0.0
+            self._target, self._target_reached = physical, at_rest_on_it
+
+    def _csp_limits(self, u: Units) -> tuple[float, float]:
+        """(velocity in inc/s, acceleration in inc/s^2) a csp set-point is followed at."""
+        s = self.store
+        v = min(s.get_int(0x607F), s.get_int(0x6080))
+        return u.velocity_to_inc_s(max(v, 1)), u.acceleration_to_inc_s2(max(s.get_int(0x60C5), 1))
+
     def _velocity_goal(self) -> tuple[float, bool]:
         """pv goal velocity in inc/s (0 unless enabled and not halted) and whether it was limited."""
         if self._state is not State.OPERATION_ENABLED or self._cw & CW.HALT or self._pending is not None:
@@ -161,6 +189,11 @@ class Kinematics:
                     self._profile = plan_position(t, p, v, leg.target, leg.speed, a, a)
                 else:
                     self._profile = plan_stop(t, p, v, a)
+            elif self._mode is Mode.CYCLIC_SYNC_POSITION:
+                self._follow_set_point()
+                assert self._target is not None
+                v_csp, a_max = self._csp_limits(u)
+                self._profile = plan_position(t, p, v, self._target, v_csp, a_max, a_max)
             elif halted:
                 self._profile = plan_stop(t, p, v, qs_dec if self.store.get_int(0x605D) == 2 else dec)
             elif self._mode is Mode.PROFILE_POSITION and self._target is not None \
@@ -205,8 +238,11 @@ class Kinematics:
             self._plan()
         elif profile.kind is Kind.POSITION and st is State.OPERATION_ENABLED:
             if self._mode is Mode.HOMING and self._legs:
-                self._legs.popleft()
-                if self._legs:
+                leg = self._legs.popleft()
+                if leg.fails:  # at the end stop, no switch found (homing)
+                    self._legs.clear()
+                    self._homing_status = HomingStatus.ERROR
+                elif self._legs:
                     self._plan()
                 else:
                     self._finish_homing()

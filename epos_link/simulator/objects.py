@@ -8,6 +8,8 @@ EPOS4 has on top of them, as hooks on the store:
 6041h, 6061h,  read from the drive model (statusword, mode display, position,
 6062h, 6064h,  velocity in the unit of 60A9h)
 606Ch
+607Ah          target position: handed to the drive model, which follows it at
+               once in cyclic synchronous position mode (8)
 3000h:05       main sensor resolution = 4 x 3010h:01 (read-only, see units)
 6040h, 6060h,  handed to the drive model (controlword, mode, target velocity);
 60FFh          6060h refuses modes outside 6502h with 06090030h
@@ -34,11 +36,14 @@ __all__ = ["Mode", "install_object_rules"]
 
 
 class Mode(IntEnum):
-    """Supported modes of operation, 6060h (CiA 402-2 6.3.1); 6502h = 0x25."""
+    """Supported modes of operation, 6060h (CiA 402-2 6.3.1); 6502h = 0xA5
+    (bits 0 pp, 2 pv, 5 hm, 7 csp). An EPOS4 also has csv (9) and cst (10),
+    which the simulator does not model: 6060h refuses them."""
 
     PROFILE_POSITION = 1
     PROFILE_VELOCITY = 3
     HOMING = 6
+    CYCLIC_SYNC_POSITION = 8
 
 
 class DriveModel(Protocol):
@@ -58,6 +63,8 @@ class DriveModel(Protocol):
 
     def on_mode(self, value: Value) -> None: ...
 
+    def on_target_position(self, value: Value) -> None: ...
+
     def on_target_velocity(self, value: Value) -> None: ...
 
     def on_units_changed(self) -> None: ...
@@ -75,6 +82,7 @@ def install_object_rules(store: ObjectStore, drive: DriveModel) -> None:
     s.add_read_hook(*MAIN_SENSOR_RESOLUTION, lambda: increments_per_revolution(s))
     s.add_write_hook(0x6040, 0, drive.on_controlword)
     s.add_write_hook(0x6060, 0, drive.on_mode)
+    s.add_write_hook(0x607A, 0, drive.on_target_position)
     s.add_write_hook(0x60FF, 0, drive.on_target_velocity)
     s.add_write_hook(0x2100, 0, drive.on_simulator_command)
 
