@@ -5,12 +5,10 @@ the ``epos`` backend, MAXON SERIAL V2 to the simulated EPOS4 and the drives
 behind its gateway) and then looks at the simulated drive itself. Axes 1, 2
 and 3 are nodes 1 (the gateway), 2 and 3, device 5, factor 1000 (mm).
 
-The bridge-side fixes of items 2, 4, 6 and 7 are made in ``tcp_bridge/plan/``;
-until then their tests are marked ``xfail(strict=True)``: each fails today
-because of the hazard it describes (the reason says which item). The tests
-without the mark are what must hold already: the simulator's own strictness
+The tests of items 2, 4, 6 and 7 failed on the bridge before issue 22 (each on
+the hazard it describes); the others check the simulator's own strictness
 (homing errors and interruptions, cyclic synchronous position mode, another
-master on the bus) and a real power cycle still being detected.
+master on the bus) and that a real power cycle is still detected.
 """
 from __future__ import annotations
 
@@ -22,7 +20,7 @@ import pytest
 from epos_link.cia402 import State
 from epos_link.simulator.homing import HomingStatus
 from epos_link.simulator.objects import Mode
-from tcp_bridge.protocol import Status
+from tcp_bridge.wire import Status
 from tests.bridge_sim import SimBridge
 
 FACTOR = 1000  # user units are mm; the drives count increments
@@ -31,10 +29,6 @@ CSP = 8  # 6060h: cyclic synchronous position mode (CiA 402-2 6060h value table)
 # Statusword bits 13/12/10 in homing mode (CiA 402-2 6.6, table of bits).
 HOMING_BITS, HOMING_ERROR_AT_REST, INTERRUPTED = 0x2000 | 0x1000 | 0x0400, 0x2400, 0x0400
 NEGATIVE_LIMIT_BIT, POSITIVE_LIMIT_BIT = 1 << 7, 1 << 6  # R11, PSI spec 4.b
-
-
-def xfail(item: int) -> pytest.MarkDecorator:
-    return pytest.mark.xfail(strict=True, reason=f"issue 22 item {item}: fixed in plan/")
 
 
 @pytest.fixture
@@ -69,7 +63,6 @@ def start_homing(b: SimBridge, axis: int) -> None:
 # --- item 2: a changed parameter is taken for a power cycle ------------------------------
 
 
-@xfail(2)
 def test_a_software_limit_written_with_81_is_not_taken_for_a_power_cycle(
         bridge: SimBridge) -> None:
     b = bridge
@@ -83,7 +76,6 @@ def test_a_software_limit_written_with_81_is_not_taken_for_a_power_cycle(
     assert b.other_master_read(2, 0x607D, 1, signed=True) == -1000
 
 
-@xfail(2)
 def test_another_masters_write_is_not_taken_for_a_power_cycle(bridge: SimBridge) -> None:
     b = bridge
     b.ok("2S04=1", "2S05=5")  # the bridge wrote 6081h
@@ -116,7 +108,6 @@ def test_another_master_can_leave_a_drive_in_csp(bridge: SimBridge) -> None:
     assert b.ok("2R07") == str(CSP)
 
 
-@xfail(4)
 def test_a_drive_left_in_csp_never_moves_on_a_target_alone(bridge: SimBridge) -> None:
     b = bridge
     b.other_master_write(2, 0x6060, 0, CSP, 1)
@@ -131,7 +122,6 @@ def test_a_drive_left_in_csp_never_moves_on_a_target_alone(bridge: SimBridge) ->
     assert b.now(2).axis_position == before and starts(b, 2) == 0, "the axis moved"
 
 
-@xfail(4)
 def test_a_shutdown_written_with_81_never_switches_off_a_moving_axis(bridge: SimBridge) -> None:
     b = bridge
     run_velocity_move(b, 2)
@@ -142,7 +132,6 @@ def test_a_shutdown_written_with_81_never_switches_off_a_moving_axis(bridge: Sim
     assert not b.now(2).unsafe_stops  # the power stage never went off while it moved
 
 
-@xfail(4)
 def test_a_mode_written_with_81_is_refused_while_enabled(bridge: SimBridge) -> None:
     b = bridge
     b.ok("2S04=1")
@@ -156,7 +145,6 @@ def test_a_mode_written_with_81_is_refused_while_enabled(bridge: SimBridge) -> N
 # --- item 6: an EPOS4 axis loses its units through 19 ------------------------------------
 
 
-@xfail(6)
 @pytest.mark.parametrize("code", ["0", "1"])
 def test_an_epos4_keeps_its_device_code(bridge: SimBridge, code: str) -> None:
     b = bridge
@@ -172,7 +160,6 @@ def test_an_epos4_keeps_its_device_code(bridge: SimBridge, code: str) -> None:
 # --- item 7: what the bridge reports ---------------------------------------------------------
 
 
-@xfail(7)
 def test_r14_has_the_sign_of_the_motion_r12_shows_on_an_inverted_axis(
         bridge: SimBridge) -> None:
     b = bridge
@@ -185,7 +172,6 @@ def test_r14_has_the_sign_of_the_motion_r12_shows_on_an_inverted_axis(
     assert (float(b.ok("2R14")) > 0) == increasing
 
 
-@xfail(7)
 def test_a_positive_limit_switch_is_the_negative_end_of_an_inverted_axis(
         bridge: SimBridge) -> None:
     b = bridge
@@ -208,7 +194,6 @@ def test_a_homing_interrupted_by_another_master_reads_interrupted_in_r10(
     assert b.now(2).homing_status is HomingStatus.IDLE
 
 
-@xfail(7)
 def test_r82_is_0_after_an_interrupted_homing(bridge: SimBridge) -> None:
     b = bridge
     start_homing(b, 2)
@@ -236,7 +221,6 @@ def test_a_homing_that_finds_no_switch_reads_homing_error_in_r10(bridge: SimBrid
                  why="R10 does not show the homing error at rest")
 
 
-@xfail(7)
 def test_r82_is_0_after_a_failed_homing(bridge: SimBridge) -> None:
     b = bridge
     no_limit_switch(b)
