@@ -89,8 +89,10 @@ class Job:
     precheck: Tuple["Job", ...] = field(default_factory=tuple)  # before anything moves
     stop: Optional["Job"] = None  # halts what ``run`` started, if a companion fails
     share: Optional[Tuple[int, int]] = None  # (axis, command) of a read that may be shared
-    # A stop or halt: tried even on a bus declared silent (tcp_bridge.health), because
-    # a NAK without trying could leave an axis moving; it costs one timeout at most.
+    # A stop or halt, or a client's reset node (S16): tried even on a bus declared
+    # silent (tcp_bridge.health), because a NAK without trying could leave an axis
+    # moving, and these are how a client gets a node back (one in NMT Stopped:
+    # tcp_bridge.motion.nmt_stopped); it costs one timeout at most.
     urgent: bool = False
 
     def __call__(self) -> bytes:
@@ -263,7 +265,8 @@ class Engine:
         if stopping:
             companions = tuple(replace(c, urgent=True) for c in companions)
         return Job(request, run, bus=bus, ops=ops, companions=companions,
-                   gated=gated, precheck=precheck, stop=stop, urgent=stopping)
+                   gated=gated, precheck=precheck, stop=stop,
+                   urgent=stopping or spec.number == 16)
 
     def _plan_slave_move(self, request: Request, master: AxisOps,
                          how: int) -> Tuple[Tuple[Follower, ...], Tuple[Job, ...]]:

@@ -104,6 +104,26 @@ def test_a_reset_node_reaches_a_moving_axis_that_another_master_stopped_by_nmt(
     b.ok("2R10")
 
 
+def test_reset_node_is_not_refused_after_the_stopped_node_was_declared_silent(
+        bridge: SimBridge) -> None:
+    b = bridge
+    run_velocity_move(b, 2)
+    stop_by_nmt(b, 2)
+    health = b.engine.guards["can1"].health
+    assert b.ask("2R10").status is Status.NAK  # the gateway's timeout, then one probe ...
+    assert health.node_silent(2)  # ... declares the node silent (fail-fast)
+    sent = len(b.transport.requests)
+    assert b.ask("2R10").status is Status.NAK  # refused at once, nothing sent
+    assert len(b.transport.requests) == sent
+    resets = power_ups(b, 2)
+    assert b.ask("2S16=1").status is Status.ACK  # the client's explicit reset is tried
+    b.wait_until(lambda: power_ups(b, 2) == resets + 1, why="node 2 was never reset")
+    assert b.now(2).resets_while_moving == 0
+    assert not health.node_silent(2)  # its answers reopened it
+    b.wait_until(lambda: b.sim.nmt_state(2) is NmtState.PRE_OPERATIONAL)
+    b.ok("2R10")
+
+
 def test_a_stop_to_an_absent_node_is_nak_and_its_start_remote_node_reaches_nobody() -> None:
     # Node 4 is configured but not on the CAN bus: no answer, before or after the
     # Start Remote Node the stop tries, so the stop stays NAK (never a false ACK).
