@@ -5,7 +5,8 @@ The command layer never sees a backend: it gets a *node*, an object with
 * ``node.sdo.upload(index, subindex) -> bytes`` and
   ``node.sdo.download(index, subindex, data: bytes)`` (canopen's ``SdoBase``,
   which a ``canopen.RemoteNode`` has and the epos_link SDO adapter provides);
-* ``node.nmt.state = "RESET"`` (canopen's ``NmtMaster``) for command 16.
+* ``node.nmt.state = "RESET"`` (canopen's ``NmtMaster``) for command 16, and
+  ``"OPERATIONAL"`` for a node found in NMT Stopped (:mod:`tcp_bridge.motion`).
 
 :class:`SdoPort` adds the data types of the CiA 301 / CiA 402 objects the
 gateway uses (so a U16 controlword goes out as 2 bytes and a statusword comes
@@ -209,19 +210,29 @@ class SdoPort:
 
     def nmt_reset(self) -> None:
         """NMT "reset node" (CiA 301 7.2.8.3.2.1), unconfirmed by definition."""
+        self._nmt("RESET", "reset node")
+
+    def nmt_start(self) -> None:
+        """NMT "start remote node" (CiA 301 7.2.8.3.2.1): a node in NMT Stopped answers
+        SDO again (EPOS4 Communication Guide, Table 3-13). Unconfirmed, like every NMT
+        command; when and why the bridge sends it: :meth:`tcp_bridge.motion.Cia402.halt`."""
+        self._nmt("OPERATIONAL", "start remote node")
+
+    def _nmt(self, state: str, what: str) -> None:
+        # canopen's NmtMaster: setting ``state`` sends the command that leads there.
         nmt = getattr(self.node, "nmt", None)
         try:
             if nmt is None:
                 raise DeviceFailure(f"{self.name}: no NMT service")
-            nmt.state = "RESET"
+            nmt.state = state
         except DeviceFailure:
             raise
         except Exception as exc:
             if not _is_device_error(exc) and not isinstance(exc, (ValueError, AttributeError)):
                 raise
-            raise DeviceFailure(f"{self.name}: NMT reset failed: {exc}") from exc
+            raise DeviceFailure(f"{self.name}: NMT {what} failed: {exc}") from exc
         if self._debug():
-            log.info("%s NMT reset node", self.name)
+            log.info("%s NMT %s", self.name, what)
 
     def _raise_failure(self, what: str, index: int, subindex: int, exc: Exception) -> NoReturn:
         if isinstance(exc, DeviceFailure) or not _is_device_error(exc):

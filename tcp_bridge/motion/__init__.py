@@ -1,8 +1,9 @@
 """The bridge's safety rule and the CiA 402 sequences: the one place that moves a drive.
 
-Every controlword the bridge writes, every NMT reset it sends and every move
+Every controlword the bridge writes, every NMT command it sends and every move
 it starts goes through :class:`Cia402` (power, modes and stop in
-:mod:`.drive`, the start of a move in :mod:`.start`). Commands cite this
+:mod:`.drive`, the start of a move in :mod:`.start`, a node that another
+master put in NMT Stopped in :mod:`.nmt_stopped`). Commands cite this
 module (:mod:`tcp_bridge.plan.axis`: 00, 04, 07, 16, 17, 85 and the slave
 moves of 29/30 and 90). Synchronous code for a bus worker thread; every wait
 polls the statusword (6041h) and is bounded by a

@@ -17,6 +17,7 @@ from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, STAT
                             TARGET_VELOCITY, Cw, Deadline, Sw, Timing, decode_state)
 from ..errors import DeviceFailure
 from ..bus.sdo import NodeSilent, SdoPort
+from .nmt_stopped import answering
 from .start import MoveStarts, OutcomeUnknown
 
 log = logging.getLogger("tcp_bridge.motion")
@@ -152,10 +153,10 @@ class Cia402(MoveStarts):
 
     # -- rule 1: lowering ------------------------------------------------------------
 
-    def _lower(self, why: Why, deadline: Deadline) -> State:
+    def _lower(self, why: Why, deadline: Deadline, state: Optional[State] = None) -> State:
         """The guard every lowering passes: refuse on an enabled axis unless a client
         asked; bring an enabled axis to rest first; let a quick stop finish."""
-        state = self.state()
+        state = self.state() if state is None else state
         if state is State.OPERATION_ENABLED:
             if why not in CLIENT_REQUESTS:
                 raise SafetyRefusal(f"{self.port.name}: refused ({why.value}): the axis is "
@@ -198,10 +199,12 @@ class Cia402(MoveStarts):
         zero) is waited for. NMT is unconfirmed (CiA 301 7.2.8.3.2.1): S16
         answers once it is sent; the power-cycle path waits for the node to boot
         (:meth:`wait_for_node`). Either way the next enable writes the
-        parameters back first.
+        parameters back first. A client's S16 to a node in NMT Stopped makes it
+        answer first (:mod:`.nmt_stopped`), so that it can be halted before the reset.
         """
         deadline = Deadline(self._clock, self.timing.ack_timeout)
-        state = self._lower(why, deadline)
+        found = answering(self.port, self.state) if why is Why.CLIENT_RESET_NODE else None
+        state = self._lower(why, deadline, found)
         if state is not State.OPERATION_ENABLED:
             self._wait_coasting(deadline)
         self._expect(None)
@@ -380,9 +383,11 @@ class Cia402(MoveStarts):
         Halt stays set until the next move. An axis that is not enabled is not
         driven. 60FFh is cleared as well, so that even a controlword written by
         someone else cannot resume a velocity move; a drive without 60FFh (no
-        profile velocity mode) refuses that write, which does not matter.
+        profile velocity mode) refuses that write, which does not matter. A node
+        that another master put in NMT Stopped is made to answer first
+        (:mod:`.nmt_stopped`): a stop must reach a moving axis.
         """
-        if self.state() is not State.OPERATION_ENABLED:
+        if answering(self.port, self.state) is not State.OPERATION_ENABLED:
             self.halt_owed = False
             return
         self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)
