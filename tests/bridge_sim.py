@@ -23,6 +23,7 @@ from epos_link.client import EposClient
 from epos_link.framing import decode_frames
 from epos_link.messages import Message, WriteObject, decode_request
 from epos_link.simulator.core import Epos4Simulator
+from epos_link.simulator.link import FaultInjector, LinkOptions
 from epos_link.simulator.transport import SimTransport
 from tcp_bridge.tables.axes import AxisTable, BusConfig, simulated_increments_per_revolution
 from tcp_bridge.backends.epos import EposBackend
@@ -67,6 +68,11 @@ class LossyTransport(SimTransport):
         ``node`` hears nothing (requests are neither executed nor answered) until
         :meth:`speak`, as a drive whose cable was pulled."""
         self._silence_rule, self._silent_node = rule, node
+
+    def add_noise(self, options: LinkOptions) -> None:
+        """From now on every answer goes through the faults of ``epos-link sim``
+        (:class:`LinkOptions`: ``corrupt``, ``drop``; ``seed`` makes them reproducible)."""
+        self.faults = FaultInjector(options)
 
     def speak(self) -> None:
         self._silence_rule, self._silent_node, self._silent = None, None, False

@@ -254,15 +254,18 @@ def test_absolute_move_with_set_point_handshake() -> None:
     assert ok(engine, "1R86") == "1"
 
 
-def test_relative_move_uses_bit_6_and_no_offset() -> None:
+def test_relative_move_goes_from_the_position_demand_value_with_no_offset() -> None:
+    # tcp_bridge.motion rule 4: the distance is added to 6062h and the move is
+    # absolute (cw bit 6 low), since bit 6 would count from the preceding target.
     engine, nodes = make()
     node = enabled(engine, nodes)
+    node.values[(0x6062, 0)] = 4321
     ok(engine, "1S25=100")  # an offset never applies to a distance
     ok(engine, "1S02=-1.5")
     node.log.clear()
     ok(engine, "1S00=2")
-    assert downloads(node, 0x607A) == [(0x607A, 0, -1500)]
-    assert controlwords(node) == [0x16F, 0x7F, 0x6F]
+    assert downloads(node, 0x607A) == [(0x607A, 0, 4321 - 1500)]
+    assert controlwords(node) == [0x12F, 0x3F, 0x2F]
 
 
 def test_offset_and_inversion_on_target_and_position() -> None:

@@ -54,9 +54,16 @@ The safety rule
    not start, or, if the node went silent during the write that starts it, that
    the outcome is unknown ("outcome unknown" in the log): every axis of the
    move is then halted, at once or, if the node is still silent, before the
-   next command to that axis runs. When the answer to a start write is lost,
-   the bridge reads the drive back (controlword, statusword, 60FFh) before it
-   answers. Writes before the start write are idempotent and start nothing.
+   next command to that axis runs. When the answer to a start write is lost
+   or garbled (a CRC error is a lost answer), the bridge reads the drive back
+   (controlword, statusword, 60FFh) before it answers, and a lost poll after
+   the start write is read again. Writes before the start write are
+   idempotent and start nothing, so a lost answer there is tried again (for
+   up to half of ``ack_timeout``). A relative move (S00=2) goes its distance
+   from where each axis stands when it starts, halted moves included: the
+   bridge adds it to the position demand value 6062h (6064h on a drive
+   without it) and starts an absolute move, as a relative set-point (cw bit
+   6) counts from the preceding target (CiA 402-2 6.7; see :mod:`.start`).
 """
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, STATUSWORD, TARGET_VELOCITY, Cw,
                             Deadline, Mode, Sw, Timing, decode_state)

@@ -8,12 +8,33 @@ CiA 402-2 6.7.1), homing by its status bits 13/12/10 (6.6), profile velocity by
 start write is lost, the write may or may not have arrived: the drive is read
 back until that is known, and only a node silent for the whole bound leaves
 the outcome unknown.
+
+A garbled answer is a lost one: the epos_link client retries a transfer whose
+answer fails its CRC or framing (``CrcError``, ``EposTimeoutError``) once, then
+raises, and :class:`~tcp_bridge.sdo.SdoPort` turns that into
+:class:`~tcp_bridge.sdo.NodeSilent`. So every transfer of a move is tried
+again within its bound: before the start write because each step there is
+idempotent and starts nothing, after it because the drive is read back until
+it says whether it took the move.
+
+A relative move (PSI 00=2) goes its distance from where the axis stands: the
+bridge adds it to the position demand value 6062h and starts an absolute
+move. CiA 402-2 6.7 lets cw bit 6 count from the *preceding target* (60F2h
+relative option 00, the default), which after a halted move is where that
+move would have ended, not where the axis stopped. 6062h is CiA 402-2's own
+alternative (60F2h option 01, "relative to the position demand value"): at
+rest after a finished move it equals that move's target exactly, so steps add
+up without the following error (60F4h) that 6064h would add to each step;
+after a halt it is where the halt ramp ended. 60F2h itself is optional in
+CiA 402-2 and no public maxon source at hand lists it for the EPOS4, so the
+bridge does not rely on it. A drive that refuses 6062h is read at 6064h.
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Sequence, Tuple, Union
+from functools import partial
+from typing import TYPE_CHECKING, Callable, Final, List, Sequence, Tuple, TypeVar, Union
 
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, TARGET_POSITION, TARGET_VELOCITY, Cw,
                             Deadline, Mode, Sw)
@@ -24,6 +45,10 @@ if TYPE_CHECKING:
     from .drive import Cia402
 
 log = logging.getLogger("tcp_bridge.motion")
+
+T = TypeVar("T")
+POSITION_DEMAND: Final = 0x6062  # CiA 402-2 6.7: the trajectory generator's output
+POSITION_ACTUAL: Final = 0x6064
 
 
 class OutcomeUnknown(DeviceFailure):
@@ -68,29 +93,49 @@ class MoveStarts:
         has gone out, every axis of the move is halted first, or owes a halt if
         it is silent (rule 4: NAK leaves nothing moving).
         """
-        deadline = Deadline(self._clock, self.timing.ack_timeout)
+        deadline = Deadline(self._clock, self.timing.ack_timeout)  # the whole move's bound
+        # Retries before the start write end half-way, so that a move they let start
+        # still has half the bound to be proven (read back) before its answer is due.
+        retries = Deadline(self._clock, self.timing.ack_timeout / 2)
         for drive, _ in moves:
-            drive.require_enabled()  # every axis can move, or none is touched
-        for drive, what in moves:
-            drive._prepare(what, deadline)
+            # Every axis can move, or none is touched.
+            drive._again(drive.require_enabled, retries)
+        prepared: List[Tuple["Cia402", Move]] = [
+            (drive, drive._again(partial(drive._prepare, what, deadline), retries))
+            for drive, what in moves]
         sent = False
         try:
-            for i, (drive, what) in enumerate(moves):
+            for i, (drive, what) in enumerate(prepared):
                 sent = True
                 drive._start(what, deadline)
                 on_accept(i)
-            for drive, what in moves:
-                drive._finish(what)
+            for drive, what in prepared:
+                drive._finish(what, deadline)
         except BaseException:
             if sent:
-                for drive, _ in moves:
+                for drive, _ in prepared:
                     drive.halt_or_owe()
             raise
 
-    def _prepare(self: "Cia402", what: Move, deadline: Deadline) -> None:
-        """Everything before the start write: idempotent, starts nothing."""
+    def _again(self: "Cia402", step: Callable[[], T], deadline: Deadline) -> T:
+        """``step``, a read or a write that starts nothing and may be repeated, tried
+        again after a lost or garbled answer until ``deadline``, then NodeSilent."""
+        while True:
+            try:
+                return step()
+            except NodeSilent as exc:
+                if deadline.expired():
+                    raise
+                log.info("%s: no usable answer (%s); trying again", self.port.name, exc)
+                self._sleep(max(self.timing.poll_interval, 0.01))
+
+    def _prepare(self: "Cia402", what: Move, deadline: Deadline) -> Move:
+        """Everything before the start write: idempotent, starts nothing. Returns the
+        move to start: a relative one becomes absolute, from where the axis stands."""
         if isinstance(what, PositionMove):
             self.set_mode(Mode.PROFILE_POSITION, deadline)
+            if what.relative:
+                what = PositionMove(self._standing_position() + what.target, relative=False)
             halt = self.port.read(CONTROLWORD, 0) & Cw.HALT
             self.port.write(TARGET_POSITION, 0, what.target)
             # Bit 4 low (keeping halt as it is), so that the start write is an edge.
@@ -103,13 +148,23 @@ class MoveStarts:
         else:
             self.set_mode(Mode.HOMING, deadline)
             self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # bit 4 low
+        return what
+
+    def _standing_position(self: "Cia402") -> int:
+        """Where a relative move counts from: 6062h, else 6064h (see the module doc)."""
+        try:
+            return self.port.read(POSITION_DEMAND, 0)
+        except NodeSilent:
+            raise
+        except DeviceFailure:  # an abort: this drive has no 6062h
+            return self.port.read(POSITION_ACTUAL, 0)
 
     def _start(self: "Cia402", what: Move, deadline: Deadline) -> None:
         """The start write(s) of ``what``, and the proof that the drive took them."""
         if isinstance(what, VelocityMove):
             # Running unhalted, the new 60FFh is itself the start; halted, the
             # release of halt is. Both are read back if an answer is lost.
-            halted = self.port.read(CONTROLWORD, 0) & Cw.HALT
+            halted = self._again(lambda: self.port.read(CONTROLWORD, 0), deadline) & Cw.HALT
             self._write_confirmed(TARGET_VELOCITY, what.velocity, deadline)
             if halted:
                 self._write_confirmed(CONTROLWORD, Cw.ENABLE_OPERATION, deadline)
@@ -123,11 +178,27 @@ class MoveStarts:
                         self.port.name, exc)
             self._resolve_edge(what, word, deadline)
             return
-        sw = self.wait_status(lambda s: _accepted(what, s), deadline.time_left(),
-                              "set-point acknowledge" if isinstance(what, PositionMove)
-                              else "homing started")
+        sw = self._await_acceptance(what, deadline)
         if isinstance(what, HomingMove) and sw & Sw.OP_MODE_13:
             raise DeviceFailure(f"{self.port.name}: homing error (statusword 0x{sw:04X})")
+
+    def _await_acceptance(self: "Cia402", what: Move, deadline: Deadline) -> int:
+        """Poll the statusword after an answered start write until the drive shows it took
+        the move; a lost or garbled poll is read again (the move may be running)."""
+        while True:
+            try:
+                sw = self.statusword()
+            except NodeSilent as exc:
+                self._silent(exc, deadline)
+                continue
+            if _accepted(what, sw):
+                return sw
+            if deadline.expired():
+                seen = ("set-point acknowledge" if isinstance(what, PositionMove)
+                        else "homing started")
+                raise DeviceFailure(f"{self.port.name}: {seen} not seen within "
+                                    f"{self.timing.ack_timeout:g} s (statusword 0x{sw:04X})")
+            self._sleep(self.timing.poll_interval)
 
     def _resolve_edge(self: "Cia402", what: Move, word: int, deadline: Deadline) -> None:
         """Rule 4: after a lost answer to an edge of bit 4, read back until it is known."""
@@ -189,16 +260,17 @@ class MoveStarts:
                                  "moving") from exc
         self._sleep(max(self.timing.poll_interval, 0.01))
 
-    def _finish(self: "Cia402", what: Move) -> None:
+    def _finish(self: "Cia402", what: Move, deadline: Deadline) -> None:
         """Profile position handshake clean-up (bit 4 low); the move runs regardless.
 
         Not for homing, where bit 4 falling would interrupt the homing (CiA 402-2
-        6.6.1.1), nor for profile velocity, which has no handshake.
+        6.6.1.1), nor for profile velocity, which has no handshake. Repeating it
+        is harmless, so a lost answer is tried again until ``deadline``.
         """
         if not isinstance(what, PositionMove):
             return
         try:
-            self.port.write(CONTROLWORD, 0, _pp_base(what))
+            self._again(partial(self.port.write, CONTROLWORD, 0, _pp_base(what)), deadline)
         except DeviceFailure as exc:
             log.warning("%s: set-point handshake not closed (%s); the next move closes it",
                         self.port.name, exc)
