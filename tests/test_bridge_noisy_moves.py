@@ -20,7 +20,7 @@ from typing import Iterator, List, Tuple
 import pytest
 
 from epos_link.simulator.link import LinkOptions
-from tcp_bridge.protocol import Status
+from tcp_bridge.wire import Status
 from tests.bridge_sim import SimBridge
 
 FACTOR = 1000  # increments per mm: every step below is exact in increments
@@ -73,7 +73,7 @@ def test_on_a_noisy_link_every_move_answer_tells_what_the_drive_did(
             made += 1
         else:
             # NAK: the move did not start (a silent bus is refused at once; see
-            # tcp_bridge.health), so the client may safely send it again.
+            # tcp_bridge.bus.health), so the client may safely send it again.
             assert (step, starts) == (0, 0), f"move {len(answers)}: NAK, yet moved {step} inc"
             # Its next try waits for the bus to be served again (a periodic probe).
             b.wait_until(lambda: b.engine.guards["can1"].health.refusal(2) is None,

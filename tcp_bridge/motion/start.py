@@ -11,8 +11,8 @@ the outcome unknown.
 
 A garbled answer is a lost one: the epos_link client retries a transfer whose
 answer fails its CRC or framing (``CrcError``, ``EposTimeoutError``) once, then
-raises, and :class:`~tcp_bridge.sdo.SdoPort` turns that into
-:class:`~tcp_bridge.sdo.NodeSilent`. So every transfer of a move is tried
+raises, and :class:`~tcp_bridge.bus.sdo.SdoPort` turns that into
+:class:`~tcp_bridge.bus.sdo.NodeSilent`. So every transfer of a move is tried
 again within its bound: before the start write because each step there is
 idempotent and starts nothing, after it because the drive is read back until
 it says whether it took the move.
