@@ -18,6 +18,7 @@ from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, STAT
 from ..errors import DeviceFailure
 from ..bus.sdo import NodeSilent, SdoPort
 from .nmt_stopped import answering
+from .recovery import Recovery
 from .start import MoveStarts, OutcomeUnknown
 
 log = logging.getLogger("tcp_bridge.motion")
@@ -57,7 +58,7 @@ class Restore(Protocol):
         """From now on :meth:`differs` answers None."""
 
 
-class Cia402(MoveStarts):
+class Cia402(MoveStarts, Recovery):
     """The sequences of one drive, through its :class:`~tcp_bridge.bus.sdo.SdoPort`.
 
     It watches every statusword the port reads (polls of R10, R04, R82 too), so
@@ -230,44 +231,6 @@ class Cia402(MoveStarts):
             if deadline.expired():
                 raise SafetyRefusal(f"{self.port.name}: refused an NMT reset: the axis still "
                                     "moves (606Ch is not zero)")
-            self._sleep(max(self.timing.poll_interval, 0.01))
-
-    def fault_reset(self) -> None:
-        """S17: rising edge of cw bit 7 (transition 15), then cw 00h; no-op without a fault."""
-        sw = self.statusword()
-        if decode_state(sw) is State.FAULT_REACTION_ACTIVE:
-            sw = self.wait_status(lambda s: decode_state(s) is State.FAULT,
-                                  self.timing.state_timeout, "FAULT after fault reaction")
-        if not sw & Sw.FAULT:
-            return  # a reset must never disable a running axis
-        self._expect(None)
-        self.port.write(CONTROLWORD, 0, Cw.DISABLE_VOLTAGE)  # bit 7 low: the edge is ours
-        self.port.write(CONTROLWORD, 0, Cw.FAULT_RESET)
-        self.wait_status(lambda s: not s & Sw.FAULT, self.timing.state_timeout,
-                         "fault cleared")
-        self.port.write(CONTROLWORD, 0, Cw.DISABLE_VOLTAGE)
-
-    def wait_for_node(self) -> None:
-        """After an NMT reset: wait ``reset_delay``, then poll until the node shows the
-        state a drive boots into (SWITCH ON DISABLED, or FAULT if it boots faulty).
-
-        Powered states would be the node before the reset took effect, and a
-        silent node is still booting; both are waited out within ``reset_timeout``.
-        """
-        self._sleep(self.timing.reset_delay)
-        deadline = self._clock() + self.timing.reset_timeout
-        booted = (State.SWITCH_ON_DISABLED, State.FAULT)
-        while True:
-            try:
-                state = self.state()
-                if state in booted:
-                    return
-                why = f"still {state.name}"
-            except DeviceFailure as exc:
-                why = str(exc)
-            if self._clock() >= deadline:
-                raise DeviceFailure(f"{self.port.name}: not back {self.timing.reset_timeout:g} s "
-                                    f"after NMT reset ({why})")
             self._sleep(max(self.timing.poll_interval, 0.01))
 
     # -- enable (rules 1 to 3) -----------------------------------------------------------
