@@ -106,6 +106,16 @@ class AxisRuntime:
             pending = self._pending.get(cmd)
         return pending[1] if pending is not None else self.params.get(self.addr, cmd)
 
+    def values(self, cmds: Tuple[int, ...]) -> Tuple[Optional[int], ...]:
+        """:meth:`value` of several parameters at one instant (the status poll's path)."""
+        with self._lock:
+            pending = {c: self._pending[c][1] for c in cmds if c in self._pending} \
+                if self._pending else None
+        base = self.params.values(self.addr, cmds)
+        if not pending:
+            return base
+        return tuple(pending.get(c, b) for c, b in zip(cmds, base))
+
     def user(self, cmd: int) -> Optional[Number]:
         stored = self.value(cmd)
         if stored is None:
@@ -148,7 +158,7 @@ class AxisRuntime:
         """The axis's conversions as resolved now; for an EPOS4 with the velocity prefix
         last read (:meth:`with_units` completes it on the bus thread)."""
         # Built for every position poll: kept while 22, 25, 19 and the prefix stay.
-        key = (self.value(22), self.value(25), self.value(19), self.velocity_exponent)
+        key = (*self.values((22, 25, 19)), self.velocity_exponent)
         memo = self._scaling_memo  # one tuple: the bus worker may replace it meanwhile
         if memo is not None and memo[0] == key:
             return memo[1]
