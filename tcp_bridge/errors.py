@@ -9,7 +9,9 @@
      +-- DeviceFailure                    reply NAK: the device transfer failed or the
      |    |                               node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
      |    +-- SilentLink                  reply NAK at once: the bus's device or the node
-     |                                    is declared silent (tcp_bridge.bus.health); nothing sent
+     |    |                               is declared silent (tcp_bridge.bus.health); nothing sent
+     |    +-- DependencyFailed            reply NAK, nothing sent: resolved against an earlier
+     |                                    write that was not executed (tcp_bridge.plan.job)
      +-- ReplyOverflow (ValueError)       reply NAK: a value read from the device cannot be
      |                                    written into the 30-byte reply (spec 2.2.2)
      +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
@@ -102,3 +104,7 @@ class ReplyOverflow(BridgeError, ValueError):
 
 class MalformedReply(BridgeError, ValueError):
     """Bytes received by a client that are not a 30-byte reply of spec 2.2.2 / 2.3.2."""
+
+
+class DependencyFailed(DeviceFailure):
+    """An earlier request whose value this one was resolved against was not executed."""

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import (TYPE_CHECKING, Any, Callable, Generator, List, Optional, Sequence, Tuple,
                     Union)
 
-from ..errors import DeviceFailure
+from ..errors import DependencyFailed
 
 if TYPE_CHECKING:
     from ..wire import Request
@@ -38,10 +38,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("tcp_bridge.plan")
 
 TICKET_WAIT = 60.0  # seconds: a job waits this long at most for an earlier write on another bus
-
-
-class DependencyFailed(DeviceFailure):
-    """An earlier request whose value this one was resolved against was not executed."""
 
 
 class Ticket:
