@@ -39,7 +39,7 @@ from .errors import InvalidCommand
 from .motion import Timing
 from .plan.axis import AxisRuntime
 from .plan.job import Job
-from .plan.planner import plan, release
+from .plan.planner import plan, releasing
 from .plan.resolve import Resolved, resolve
 from .tables.axes import AxisConfig, AxisTable, ConfigError, DeviceCode
 from .tables.parameters import ParameterStore
@@ -153,31 +153,18 @@ class Engine:
     async def execute(self, request: Request) -> bytes:
         """Resolve, plan and run ``request``; returns the reply, raises on failure."""
         job = self.prepare(request)
-        failure: Optional[BaseException] = None
-        try:
+        with releasing(job):
             value = self.scheduler.at_once(job)  # no coroutine: the status poll's path
             if value is BUSY:
                 value = await self.scheduler.queued(job, job if job.share is not None else None)
-        except BaseException as exc:
-            failure = exc
-            raise
-        finally:
-            if job.own:
-                release(job, failure)
         return format_outcome(request, value)
 
     def execute_sync(self, request: Request) -> bytes:
         """Run a request in the caller's thread (tests, tools); raises on failure."""
         job = self.prepare(request)
-        failure: Optional[BaseException] = None
-        try:
-            return format_outcome(request, self.scheduler.run_sync(job))
-        except BaseException as exc:
-            failure = exc
-            raise
-        finally:
-            if job.own:
-                release(job, failure)
+        with releasing(job):
+            value = self.scheduler.run_sync(job)
+        return format_outcome(request, value)
 
     async def probe(self) -> None:
         """At start-up: read each EPOS4 axis's identity (1018h/1) and units (60A9h,

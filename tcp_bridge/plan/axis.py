@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass
-from typing import Any, Dict, Final, List, Optional, Tuple
+from typing import Any, Dict, Final, Optional, Tuple
 
 from ..bus.sdo import NodeSilent, SdoPort
 from ..errors import DeviceFailure, InvalidCommand

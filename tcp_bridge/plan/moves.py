@@ -145,7 +145,7 @@ def plan_stop(master: AxisRuntime, then: Optional[Callable[[], None]] = None) ->
 
 def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) -> MovePlan:
     """00 Move: 1 absolute, 2 relative, 3 velocity, 8 stop, 9 home."""
-    drive = master.need_drive()
+    master.need_drive()  # CAN for an axis without a drive
     if how == 8:
         return plan_stop(master)
     value = _value(master, how)
@@ -173,7 +173,7 @@ def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) ->
             share_profile(master, near, master_profile_user)
         elif master.borrowed_profile:
             give_back_profile(master)
-        _start(drive, moves)
+        _start(moves)
     return MovePlan(move, companions, _halt_near(master, near))
 
 
@@ -190,11 +190,11 @@ def _single(axis: AxisRuntime, what: Callable[[], Move],
             _write_profile(axis, profile)
         elif axis.borrowed_profile:
             give_back_profile(axis)
-        _start(axis.need_drive(), [(axis, what)])
+        _start([(axis, what)])
     return move
 
 
-def _start(drive: object, moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]]) -> None:
+def _start(moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]]) -> None:
     pairs = [(axis.need_drive(), what()) for axis, what in moves]
     for axis, _ in moves:
         axis.moving_ack = 0  # spec 86: 0 before the move ...
@@ -204,8 +204,7 @@ def _start(drive: object, moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]
     pairs[0][0].move(pairs, accepted)
 
 
-def plan_combined(axes: Mapping[int, AxisRuntime], internal: Sequence[AxisRuntime],
-                  how: int) -> MovePlan:
+def plan_combined(internal: Sequence[AxisRuntime], how: int) -> MovePlan:
     """Spec 90 with 3.2: 0 stop, 1 LINR (relative by each 02), 2 LINA to zero."""
     parts = []
     for axis in internal:

@@ -4,7 +4,8 @@ the earlier writes it depends on. No I/O: the job's closures do the transfers.
 """
 from __future__ import annotations
 
-from typing import Mapping, Optional, Sequence, Tuple
+from contextlib import contextmanager
+from typing import Iterator, Mapping, Optional, Sequence, Tuple
 
 from ..tables.commands import CommandKind
 from .axis import AxisRuntime
@@ -38,7 +39,7 @@ def plan(r: Resolved, axes: Mapping[int, AxisRuntime],
         share = (axis.addr, r.spec.number) if bus is not None else None
         return Job(r.request, run, bus=bus, axis=axis, share=share,
                    after=_read_after(axis, r))
-    after = _tickets(axis)  # before this request's own promise
+    after = axis.tickets()  # before this request's own promise
     move = _move_plan(r, axes, internal)
     if move is None:
         run = WRITES[r.rule](r)
@@ -47,7 +48,7 @@ def plan(r: Resolved, axes: Mapping[int, AxisRuntime],
                    urgent=r.rule == "reset_node")  # a client's S16 is never refused unsent
     companions = tuple(_part_job(r, p, move.stopping) for p in move.companions)
     for p in move.companions:
-        after += _tickets(p.axis)
+        after += p.axis.tickets()
     gated = bool(companions) and not move.stopping
     precheck = tuple(Job(r.request, p.axis.need_drive().require_enabled, bus=p.axis.config.bus,
                          axis=p.axis) for p in move.companions) if gated else ()
@@ -67,7 +68,7 @@ def _move_plan(r: Resolved, axes: Mapping[int, AxisRuntime],
     if r.rule == "combined_move":
         if not internal:
             raise r.invalid("no internal axes with a drive are configured (spec 3.2)")
-        return plan_combined(axes, internal, how)
+        return plan_combined(internal, how)
     if r.rule == "inhibit" and how == 0 and axis.followers:
         return plan_stop(axis, then=WRITES["inhibit"](r))
     return None
@@ -80,16 +81,23 @@ def _part_job(r: Resolved, part: Part, stopping: bool) -> Job:
                urgent=stopping)
 
 
-def _tickets(axis: AxisRuntime) -> Tuple[Ticket, ...]:
-    return axis.tickets()
-
-
 def _read_after(axis: AxisRuntime, r: Resolved) -> Tuple[Ticket, ...]:
     # A parameter read answers the value the pending write will store: it stands or
     # falls with that write. Status reads use no pending value.
     if r.spec.kind is not CommandKind.PARAMETER:
         return ()
     return axis.tickets()
+
+
+@contextmanager
+def releasing(job: Job) -> Iterator[None]:
+    """Around a job's run: :func:`release` its promises with the outcome, whatever it is."""
+    try:
+        yield
+    except BaseException as exc:
+        release(job, exc)
+        raise
+    release(job, None)
 
 
 def release(job: Job, failure: Optional[BaseException]) -> None:
@@ -102,4 +110,4 @@ def release(job: Job, failure: Optional[BaseException]) -> None:
             job.axis.abandon(ticket, failure or RuntimeError("not run"))
 
 
-__all__ = ["needs_bus", "plan", "release"]
+__all__ = ["needs_bus", "plan", "release", "releasing"]

@@ -35,8 +35,7 @@ from ..cia402_words import MODES_DISPLAY, STATUSWORD, Mode, Sw
 from ..errors import DeviceFailure
 from ..motion import State
 from ..tables.axes import DeviceCode
-from ..tables.commands import Quantity, SdoSelector
-from ..tables.units import Scaling
+from ..tables.commands import SdoSelector
 from .resolve import Resolved
 
 Value = Union[int, float, str]
@@ -95,14 +94,6 @@ def in_user_frame(bits: int, inversion: int) -> int:
     return bits
 
 
-def from_drive(quantity: Quantity, scaling: Scaling, raw: int) -> float:
-    if quantity is Quantity.VELOCITY:
-        return scaling.velocity_from_drive(raw)
-    if quantity is Quantity.ACCELERATION:
-        return scaling.acceleration_from_drive(raw)
-    return scaling.from_drive(raw)
-
-
 def _parameter(r: Resolved) -> ReadPlan:
     axis, spec = r.axis, r.spec
     assert axis is not None
@@ -123,7 +114,7 @@ def _parameter(r: Resolved) -> ReadPlan:
             return raw
         if n == 2:
             return scaling.position_from_drive(raw)
-        return from_drive(spec.quantity, axis.with_units(scaling, spec.quantity), raw)
+        return axis.with_units(scaling, spec.quantity).quantity_from_drive(spec.quantity, raw)
     return read
 
 

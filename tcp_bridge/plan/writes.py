@@ -59,24 +59,14 @@ _LIVE_TARGET_MODES: Final = frozenset({7, 8})
 MAXON_DEVICE: Final = DeviceCode.C_DC_MAXON_EPOS4
 
 
-def to_drive(quantity: Quantity, scaling: Scaling, user: Number) -> int:
-    if quantity is Quantity.VELOCITY:
-        return scaling.velocity_to_drive(user)
-    if quantity is Quantity.ACCELERATION:
-        return scaling.acceleration_to_drive(user)
-    return scaling.to_drive(user)
-
-
 def check_resolution(addr: int, spec: CommandSpec, user: Number, raw: int,
                      scaling: Scaling) -> None:
     """A velocity or acceleration the drive's unit cannot carry: CAN if it would become
     0, a warning if rounding changes it by more than 1% (rpm are coarse)."""
-    from .reads import from_drive
-
     if user and not raw:
         raise InvalidCommand(f"axis {addr}: {user} {spec.unit} is below the drive's "
                              "resolution (it would be written as 0)", cmd=spec.number)
-    back = from_drive(spec.quantity, scaling, raw)
+    back = scaling.quantity_from_drive(spec.quantity, raw)
     if user and abs(back - float(user)) > 0.01 * abs(float(user)):
         log.warning("axis %d: %s = %s %s is written as %d in the drive's unit, which is %g %s",
                     addr, spec.name, user, spec.unit, raw, back, spec.unit)
@@ -94,7 +84,7 @@ def drive_writes(axis: AxisRuntime, n: int, user: Number,
     elif n == 5:
         raw = scaling.velocity_to_drive(abs(user))
     elif spec.scaled:
-        raw = to_drive(spec.quantity, scaling, user)
+        raw = scaling.quantity_to_drive(spec.quantity, user)
     else:
         raw = int(user)
     if spec.quantity is not Quantity.OTHER:
@@ -328,4 +318,4 @@ WRITES: Final[Mapping[str, Callable[[Resolved], WritePlan]]] = {
 """S handlers by rule; 00 and 90 are in :mod:`.moves`, 91 in the engine."""
 
 __all__: Final = ["DRIVE_PARAMETERS", "DriveParameters", "MOTION_OBJECTS", "WRITES",
-                  "WritePlan", "check_resolution", "drive_writes", "to_drive"]
+                  "WritePlan", "check_resolution", "drive_writes"]

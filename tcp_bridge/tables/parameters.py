@@ -30,7 +30,7 @@ import json
 import logging
 import threading
 from pathlib import Path
-from typing import Callable, Dict, Final, Optional, Tuple
+from typing import Dict, Final, Optional, Tuple
 
 from .axes import (DEFAULTS, PARAMETER_NAMES, AxisTable, ConfigError, DeviceCode, from_stored,
                    to_stored)

@@ -45,7 +45,7 @@ from decimal import ROUND_HALF_UP, Decimal
 from functools import lru_cache
 from typing import Final, Optional, Tuple, Union
 
-from .commands import INT32, CommandSpec, ValueType
+from .commands import INT32, CommandSpec, Quantity, ValueType
 from ..errors import InvalidCommand
 from ..wire import NUMBER_RE
 
@@ -154,6 +154,22 @@ class Scaling:
         if self.units.increments_per_revolution is None:
             return self.from_drive(raw)
         return float(_dec(raw) / self._per_rev())
+
+    def quantity_to_drive(self, quantity: Quantity, user: Number) -> int:
+        """A user value of ``quantity`` in drive units (velocity, acceleration, or factor)."""
+        if quantity is Quantity.VELOCITY:
+            return self.velocity_to_drive(user)
+        if quantity is Quantity.ACCELERATION:
+            return self.acceleration_to_drive(user)
+        return self.to_drive(user)
+
+    def quantity_from_drive(self, quantity: Quantity, raw: int) -> float:
+        """A drive value of ``quantity`` in user units: :meth:`quantity_to_drive` back."""
+        if quantity is Quantity.VELOCITY:
+            return self.velocity_from_drive(raw)
+        if quantity is Quantity.ACCELERATION:
+            return self.acceleration_from_drive(raw)
+        return self.from_drive(raw)
 
     def position_to_drive(self, user: Number) -> int:
         """``round((user - offset) * factor) * inversion``: a user position for the drive."""
