@@ -224,5 +224,23 @@ class SimBridge:
         wait_until(what, timeout, why or "condition never became true")
 
 
+def power_ups(b: SimBridge, node: int) -> int:
+    """How often the drive went through transition 0 (an NMT reset or power-up)."""
+    return sum(1 for _, number, _ in b.drive(node).history if number == 0)
+
+
+def starts(b: SimBridge, node: int) -> int:
+    """Motion starts the simulated drive accepted (set-points, velocity goals, homings)."""
+    return int(b.now(node).motion_starts)
+
+
+def run_velocity_move(b: SimBridge, axis: int, speed: str = "5", direction: int = 1) -> None:
+    """Enable ``axis`` and start a velocity move; wait until the drive turns in
+    ``direction`` (-1 on an axis inverted with S22=-1)."""
+    b.ok(f"{axis}S04=1", f"{axis}S05={speed}", f"{axis}S06=50", f"{axis}S00=3")
+    b.wait_until(lambda: b.velocity(axis) * direction > 0,
+                 why="the velocity move never started")
+
+
 def opcodes(messages: Iterable[Message]) -> List[str]:
     return [type(m).__name__ for m in messages]

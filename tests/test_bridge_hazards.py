@@ -21,7 +21,7 @@ from epos_link.cia402 import State
 from epos_link.simulator.homing import HomingStatus
 from epos_link.simulator.objects import Mode
 from tcp_bridge.wire import Status
-from tests.bridge_sim import SimBridge
+from tests.bridge_sim import SimBridge, power_ups, run_velocity_move, starts
 
 FACTOR = 1000  # user units are mm; the drives count increments
 MAXON_VENDOR_ID = 0x000000FB  # 1018h/1 of the simulated EPOS4 (CiA 301 identity object)
@@ -36,21 +36,6 @@ def bridge() -> Iterator[SimBridge]:
     b = SimBridge()
     yield b
     b.close()
-
-
-def power_ups(b: SimBridge, node: int) -> int:
-    """How often the drive went through transition 0 (an NMT reset or power-up)."""
-    return sum(1 for _, number, _ in b.drive(node).history if number == 0)
-
-
-def starts(b: SimBridge, node: int) -> int:
-    """Motion starts the simulated drive accepted (set-points, velocity goals, homings)."""
-    return int(b.now(node).motion_starts)
-
-
-def run_velocity_move(b: SimBridge, axis: int, speed: str = "5") -> None:
-    b.ok(f"{axis}S04=1", f"{axis}S05={speed}", f"{axis}S06=50", f"{axis}S00=3")
-    b.wait_until(lambda: b.velocity(axis) != 0, why="the velocity move never started")
 
 
 def start_homing(b: SimBridge, axis: int) -> None:
@@ -164,7 +149,7 @@ def test_r14_has_the_sign_of_the_motion_r12_shows_on_an_inverted_axis(
         bridge: SimBridge) -> None:
     b = bridge
     b.ok("2S22=-1")
-    run_velocity_move(b, 2, speed="5")
+    run_velocity_move(b, 2, speed="5", direction=-1)
     b.wait_until(lambda: abs(b.velocity(2)) > 4 * FACTOR, why="not at speed")
     first = float(b.ok("2R12"))
     b.wait_until(lambda: float(b.ok("2R12")) != first, why="R12 does not change")

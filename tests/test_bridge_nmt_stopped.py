@@ -31,9 +31,8 @@ from epos_link.simulator.nmt import NmtState
 from tcp_bridge.tables.axes import AxisTable, simulated_increments_per_revolution
 from tcp_bridge.engine import build_engine
 from tcp_bridge.wire import Status, decode_reply, parse_request
-from tests.bridge_sim import TIMING, SimBridge
+from tests.bridge_sim import TIMING, SimBridge, power_ups, run_velocity_move
 from tests.helpers import wait_until
-from tests.test_bridge_safety import power_ups, run_velocity_move
 
 
 @pytest.fixture

@@ -17,7 +17,8 @@ import pytest
 from epos_link.cia402 import State
 from epos_link.messages import ReadObject, WriteObject
 from tcp_bridge.wire import Status
-from tests.bridge_sim import SimBridge, controlword_write, opcodes
+from tests.bridge_sim import (SimBridge, controlword_write, opcodes, power_ups,
+                              run_velocity_move, starts)
 
 FACTOR = 1000  # user units are mm; the drives count increments
 
@@ -29,23 +30,8 @@ def bridge() -> Iterator[SimBridge]:
     b.close()
 
 
-def power_ups(b: SimBridge, node: int) -> int:
-    """How often the drive went through transition 0 (an NMT reset or power-up)."""
-    return sum(1 for _, number, _ in b.drive(node).history if number == 0)
-
-
-def starts(b: SimBridge, node: int) -> int:
-    """Motion starts the simulated drive accepted (set-points, velocity goals, homings)."""
-    return int(b.now(node).motion_starts)
-
-
 def transitions_since(b: SimBridge, node: int, t: float) -> List[int]:
     return [number for when, number, _ in b.drive(node).history if when >= t]
-
-
-def run_velocity_move(b: SimBridge, axis: int, speed: str = "5") -> None:
-    b.ok(f"{axis}S04=1", f"{axis}S05={speed}", f"{axis}S06=50", f"{axis}S00=3")
-    b.wait_until(lambda: b.velocity(axis) > 0, why="the velocity move never started")
 
 
 # --- finding 1: enable resets a moving drive ---------------------------------------------
