@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
-from typing import ClassVar, Union
+from typing import Any, ClassVar, Union
 
 from .codes import MAX_SEGMENT, OpCode
 from .errors import LocalProtocolError, MessageFormatError
@@ -124,7 +124,8 @@ class WriteObject(_Addressed):
     @classmethod
     def from_payload(cls, data: bytes) -> "WriteObject":
         _expect(data, 8, cls.__name__)
-        return cls(*_ADDR.unpack(data[:4]), data=bytes(data[4:]))
+        node, index, subindex = _ADDR.unpack(data[:4])
+        return cls(node, index, subindex, data=bytes(data[4:]))
 
 
 @dataclass(frozen=True)
@@ -144,7 +145,8 @@ class InitiateSegmentedWrite(_Addressed):
     @classmethod
     def from_payload(cls, data: bytes) -> "InitiateSegmentedWrite":
         _expect(data, 8, cls.__name__)
-        return cls(*_ADDR.unpack(data[:4]), length=_U32.unpack(data[4:])[0])
+        node, index, subindex = _ADDR.unpack(data[:4])
+        return cls(node, index, subindex, length=_U32.unpack(data[4:])[0])
 
 
 @dataclass(frozen=True)
@@ -196,7 +198,7 @@ class SendNMTService(Message):
 Request = Union[ReadObject, InitiateSegmentedRead, SegmentRead, WriteObject,
                 InitiateSegmentedWrite, SegmentWrite, SendNMTService]
 
-REQUEST_TYPES: dict[int, type] = {
+REQUEST_TYPES: dict[int, Any] = {
     cls.opcode: cls
     for cls in (ReadObject, InitiateSegmentedRead, SegmentRead, WriteObject,
                 InitiateSegmentedWrite, SegmentWrite, SendNMTService)
@@ -240,7 +242,7 @@ class ReadObjectAnswer(Answer):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        _check(len(self.data) == 4 or (self.error_code and not self.data),
+        _check(len(self.data) == 4 or (self.error_code != 0 and not self.data),
                "ReadObject answers carry 4 data bytes")
 
     @classmethod
@@ -372,7 +374,8 @@ def decode_request(frame: Frame) -> Request:
     cls = REQUEST_TYPES.get(frame.opcode)
     if cls is None:
         raise MessageFormatError(f"unknown op code 0x{frame.opcode:02X}", frame.data)
-    return cls.from_payload(frame.data)  # type: ignore[no-any-return]
+    request: Request = cls.from_payload(frame.data)
+    return request
 
 
 def decode_answer(frame: Frame, request: "type | Message | None" = None) -> AnyAnswer:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Dict, Final, Optional, Tuple
+from typing import Any, Dict, Final, Mapping, Optional, Tuple
 
 from epos_link.cia402 import state_from_statusword
 
@@ -183,7 +183,7 @@ def _epos4_units(axis: AxisConfig, r: Reading) -> Tuple[Verdict, str]:
 # -- output -------------------------------------------------------------------------------
 
 # maxon's abbreviations of the modes of operation (6061h, CiA 402-2 6.3.1).
-MODE_NAMES: Final = {Mode.PROFILE_POSITION: "PPM", Mode.PROFILE_VELOCITY: "PVM", Mode.HOMING: "HMM"}
+MODE_NAMES: Final[Mapping[int, str]] = {Mode.PROFILE_POSITION: "PPM", Mode.PROFILE_VELOCITY: "PVM", Mode.HOMING: "HMM"}
 HEADER: Final = ("axis", "bus/node", "verdict", "device", "serial", "state", "mode",
                  "position", "units")
 WIDTHS: Final = (4, 9, 14, 10, 10, 19, 4, 12, 0)

@@ -214,7 +214,7 @@ class LinkDecoder:
         event.answers = type(req).__name__
         if conv.request_time is not None:
             event.latency = max(0.0, event.time - conv.request_time)
-        if hasattr(req, "index"):
+        if isinstance(req, (ReadObject, WriteObject, InitiateSegmentedRead, InitiateSegmentedWrite)):
             self._lookup(req.node, req.index, req.subindex, event)
         elif conv.transfer is not None:
             t = conv.transfer

@@ -89,7 +89,7 @@ class ValueType:
             lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if self.signed else (0, (1 << bits) - 1)
             number = int(value)
             if not lo <= number <= hi:
-                raise LocalProtocolError(f"{value} is out of range for {self.name} ({lo}..{hi})")
+                raise LocalProtocolError(f"{value!s} is out of range for {self.name} ({lo}..{hi})")
             return number.to_bytes(self.size, "little", signed=self.signed)
         if self.kind == "bool":
             return b"\x01" if value else b"\x00"
@@ -222,7 +222,7 @@ def _info(var: ODVariable) -> ObjectInfo:
     parent = var.parent
     if isinstance(parent, (ODRecord, ODArray)):
         name = f"{parent.name}.{var.name}"
-    return ObjectInfo(var.index, var.subindex, name, TYPE_BY_CODE.get(var.data_type),
+    return ObjectInfo(var.index, var.subindex, name, TYPE_BY_CODE.get(var.data_type) if var.data_type is not None else None,
                       var.access_type or "")
 
 
@@ -292,10 +292,10 @@ class ObjectDirectory:
         index, sub = hits[0]
         if sub is None:
             obj = self.od[index]
-            if subindex is None:
+            if subindex is None and isinstance(obj, (ODRecord, ODArray)):
                 subs = ", ".join(f"{s}={obj[s].name!r}" for s in sorted(obj.subindices))
                 raise ObjectLookupError(f"{obj.name!r} (0x{index:04X}) has subentries: give a SUBINDEX ({subs})")
-            sub = subindex
+            sub = subindex if subindex is not None else 0  # a VAR is its own subindex 0
         elif subindex is not None and subindex != sub:
             raise ObjectLookupError(f"{name!r} is subindex {sub}, not {subindex}")
         info = self.find(index, sub)

@@ -56,7 +56,7 @@ if os.name == "posix":
     import fcntl
     import termios
 
-    _TERMIOS_ERROR: type = termios.error
+    _TERMIOS_ERROR: type[BaseException] = termios.error
 else:
     _TERMIOS_ERROR = OSError
 

@@ -46,6 +46,7 @@ import asyncio
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, Dict, Final, Hashable, List, Optional, Protocol
 
 SHARE_WINDOW: Final = 0.002  # seconds a group may wait for the requests it expects (rule 4)
@@ -123,7 +124,7 @@ class SharedReads:
             if group is not None:
                 group.waiters.append(waiter)
                 self._cond.notify_all()
-                waiter.add_done_callback(lambda w, g=group: self._abandon(g, w))
+                waiter.add_done_callback(partial(self._abandon, group))
                 return waiter
             group = _Group(key, self._last_size.get(key, 1), [waiter])
             self._open[key] = group

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 class Recovery:
     """The recovery half of :class:`~tcp_bridge.motion.drive.Cia402`."""
 
-    def fault_reset(self: "Cia402") -> None:
+    def fault_reset(self: "Cia402") -> None:  # type: ignore[misc]
         """S17: rising edge of cw bit 7 (transition 15), then cw 00h; no-op without a fault."""
         sw = self.statusword()
         if decode_state(sw) is State.FAULT_REACTION_ACTIVE:
@@ -36,7 +36,7 @@ class Recovery:
                          "fault cleared")
         self.port.write(CONTROLWORD, 0, Cw.DISABLE_VOLTAGE)
 
-    def wait_for_node(self: "Cia402") -> None:
+    def wait_for_node(self: "Cia402") -> None:  # type: ignore[misc]
         """After an NMT reset: wait ``reset_delay``, then poll until the node shows the
         state a drive boots into (SWITCH ON DISABLED, or FAULT if it boots faulty).
 

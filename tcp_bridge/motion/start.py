@@ -79,9 +79,14 @@ def _pp_base(what: PositionMove) -> int:
 
 
 class MoveStarts:
-    """The move half of :class:`~tcp_bridge.motion.Cia402` (mixed in there)."""
+    """The move half of :class:`~tcp_bridge.motion.Cia402` (mixed in there).
 
-    def move(self: "Cia402", moves: Sequence[Tuple["Cia402", Move]],
+    Its methods take ``self: "Cia402"``: they use the whole drive. mypy cannot
+    check a mixin's self type against a subclass defined later, hence the
+    ``type: ignore[misc]`` on each signature (the bodies are checked).
+    """
+
+    def move(self: "Cia402", moves: Sequence[Tuple["Cia402", Move]],  # type: ignore[misc]
              on_accept: Callable[[int], None]) -> None:
         """Start ``moves`` (pairs of drive and move) in one bus job.
 
@@ -117,7 +122,7 @@ class MoveStarts:
                     drive.halt_or_owe()
             raise
 
-    def _again(self: "Cia402", step: Callable[[], T], deadline: Deadline) -> T:
+    def _again(self: "Cia402", step: Callable[[], T], deadline: Deadline) -> T:  # type: ignore[misc]
         """``step``, a read or a write that starts nothing and may be repeated, tried
         again after a lost or garbled answer until ``deadline``, then NodeSilent."""
         while True:
@@ -129,7 +134,7 @@ class MoveStarts:
                 log.info("%s: no usable answer (%s); trying again", self.port.name, exc)
                 self._sleep(max(self.timing.poll_interval, 0.01))
 
-    def _prepare(self: "Cia402", what: Move, deadline: Deadline) -> Move:
+    def _prepare(self: "Cia402", what: Move, deadline: Deadline) -> Move:  # type: ignore[misc]
         """Everything before the start write: idempotent, starts nothing. Returns the
         move to start: a relative one becomes absolute, from where the axis stands."""
         if isinstance(what, PositionMove):
@@ -150,7 +155,7 @@ class MoveStarts:
             self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # bit 4 low
         return what
 
-    def _standing_position(self: "Cia402") -> int:
+    def _standing_position(self: "Cia402") -> int:  # type: ignore[misc]
         """Where a relative move counts from: 6062h, else 6064h (see the module doc)."""
         try:
             return self.port.read(POSITION_DEMAND, 0)
@@ -159,7 +164,7 @@ class MoveStarts:
         except DeviceFailure:  # an abort: this drive has no 6062h
             return self.port.read(POSITION_ACTUAL, 0)
 
-    def _start(self: "Cia402", what: Move, deadline: Deadline) -> None:
+    def _start(self: "Cia402", what: Move, deadline: Deadline) -> None:  # type: ignore[misc]
         """The start write(s) of ``what``, and the proof that the drive took them."""
         if isinstance(what, VelocityMove):
             # Running unhalted, the new 60FFh is itself the start; halted, the
@@ -182,7 +187,7 @@ class MoveStarts:
         if isinstance(what, HomingMove) and sw & Sw.OP_MODE_13:
             raise DeviceFailure(f"{self.port.name}: homing error (statusword 0x{sw:04X})")
 
-    def _await_acceptance(self: "Cia402", what: Move, deadline: Deadline) -> int:
+    def _await_acceptance(self: "Cia402", what: Move, deadline: Deadline) -> int:  # type: ignore[misc]
         """Poll the statusword after an answered start write until the drive shows it took
         the move; a lost or garbled poll is read again (the move may be running)."""
         while True:
@@ -200,7 +205,7 @@ class MoveStarts:
                                     f"{self.timing.ack_timeout:g} s (statusword 0x{sw:04X})")
             self._sleep(self.timing.poll_interval)
 
-    def _resolve_edge(self: "Cia402", what: Move, word: int, deadline: Deadline) -> None:
+    def _resolve_edge(self: "Cia402", what: Move, word: int, deadline: Deadline) -> None:  # type: ignore[misc]
         """Rule 4: after a lost answer to an edge of bit 4, read back until it is known."""
         while True:
             try:
@@ -225,7 +230,7 @@ class MoveStarts:
                 continue
             self._sleep(self.timing.poll_interval)
 
-    def _write_confirmed(self: "Cia402", index: int, value: int, deadline: Deadline) -> None:
+    def _write_confirmed(self: "Cia402", index: int, value: int, deadline: Deadline) -> None:  # type: ignore[misc]
         """Write an object whose write may start motion; after a lost answer, read it
         back (writing again only when it certainly did not arrive)."""
         try:
@@ -253,14 +258,14 @@ class MoveStarts:
             except NodeSilent:
                 continue
 
-    def _silent(self: "Cia402", exc: Exception, deadline: Deadline) -> None:
+    def _silent(self: "Cia402", exc: Exception, deadline: Deadline) -> None:  # type: ignore[misc]
         if deadline.expired():
             raise OutcomeUnknown(f"{self.port.name}: outcome unknown: the node stayed silent "
                                  f"after the move's start write ({exc}); the axis may be "
                                  "moving") from exc
         self._sleep(max(self.timing.poll_interval, 0.01))
 
-    def _finish(self: "Cia402", what: Move, deadline: Deadline) -> None:
+    def _finish(self: "Cia402", what: Move, deadline: Deadline) -> None:  # type: ignore[misc]
         """Profile position handshake clean-up (bit 4 low); the move runs regardless.
 
         Not for homing, where bit 4 falling would interrupt the homing (CiA 402-2

@@ -78,7 +78,7 @@ class AxisRuntime:
             self.drive.listeners.append(self._on_drive_event)
             self.drive.coasting = self._coasting
         nmt = getattr(getattr(port, "node", None), "nmt", None)
-        if self.drive is not None and hasattr(nmt, "add_heartbeat_callback"):
+        if self.drive is not None and nmt is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
             # CiA 301 7.2.8.3.2.4: a boot-up message is a heartbeat with state 0.
             nmt.add_heartbeat_callback(lambda state: drive.note_bootup() if state == 0 else None)

@@ -30,6 +30,7 @@ engine, gated on the master's acceptance (:mod:`.job`).
 from __future__ import annotations
 
 import logging
+from functools import partial
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
@@ -129,7 +130,7 @@ def plan_stop(master: AxisRuntime, then: Optional[Callable[[], None]] = None) ->
     its move started are halted; those on its bus in its own job, first."""
     master.need_drive()
     near = [f.axis for f in master.followers if f.axis.config.bus == master.config.bus]
-    far = tuple(Part(f.axis, lambda a=f.axis: halt_all([a]), None)
+    far = tuple(Part(f.axis, partial(halt_all, [f.axis]), None)
                 for f in master.followers if f.axis.config.bus != master.config.bus)
     master.forget_followers()
     if then is None:
@@ -209,7 +210,7 @@ def plan_combined(internal: Sequence[AxisRuntime], how: int) -> MovePlan:
     parts = []
     for axis in internal:
         if how == 0:
-            parts.append(Part(axis, lambda a=axis: halt_all([a]), None))
+            parts.append(Part(axis, partial(halt_all, [axis]), None))
             continue
         what = _what(axis, 2, 1, axis.user(2)) if how == 1 else _what(axis, 1, 1, 0.0)
         axis.lead(())

@@ -5,7 +5,7 @@ the earlier writes it depends on. No I/O: the job's closures do the transfers.
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Iterator, Mapping, Optional, Sequence, Tuple
+from typing import Callable, Iterator, Mapping, Optional, Sequence, Tuple
 
 from ..tables.commands import CommandKind
 from .axis import AxisRuntime
@@ -42,9 +42,9 @@ def plan(r: Resolved, axes: Mapping[int, AxisRuntime],
     after = axis.tickets()  # before this request's own promise
     move = _move_plan(r, axes, internal)
     if move is None:
-        run = WRITES[r.rule](r)
+        write: Callable[[], object] = WRITES[r.rule](r)
         own = tuple(t for t in axis.tickets() if t not in after)  # promised by this request
-        return Job(r.request, run, bus=bus, axis=axis, after=after, own=own,
+        return Job(r.request, write, bus=bus, axis=axis, after=after, own=own,
                    urgent=r.rule == "reset_node")  # a client's S16 is never refused unsent
     companions = tuple(_part_job(r, p, move.stopping) for p in move.companions)
     for p in move.companions:

@@ -287,11 +287,16 @@ def simulated_table(count: int = 1, *, state_file: Optional[Path] = None,
 
 def simulated_increments_per_revolution() -> int:
     """The main sensor resolution of the simulated EPOS4 (3000h/05h, EDS default)."""
+    from canopen.objectdictionary import ODArray, ODRecord
+
     from epos_link.simulator.od import load_object_dictionary
 
     od = load_object_dictionary()
     try:
-        return int(od[0x3000][5].default)
+        sensor = od[0x3000]
+        if not isinstance(sensor, (ODRecord, ODArray)):  # a VAR: no sensor record
+            raise KeyError(0x3000)
+        return int(sensor[5].default or 0)
     except KeyError:
         # A simulator whose EDS has no sensor objects counts velocities in inc/s:
         # 60 makes its "rpm" equal to inc/s at any factor (rpm = user*factor*60/ipr).
