@@ -47,6 +47,8 @@ from .drive import Drive
 from .nmt import NmtState, next_state
 from .canbus import DEFAULT_BITRATE, sdo_answer_due, wait_until
 from .pdo import TICK, PdoTicker, TransmitPdos
+from .comm import DriveComm
+from .heartbeat import HeartbeatTicker
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
 
@@ -66,7 +68,8 @@ def _locked(lock: threading.RLock, fn: Callable[..., Any]) -> Callable[..., Any]
 class SimulatedDrive:
     """One drive: object store, CiA 402 model, NMT state and (behind the gateway) its LocalNode."""
 
-    def __init__(self, node_id: int, clock: Callable[[], float]) -> None:
+    def __init__(self, node_id: int, clock: Callable[[], float],
+                 comm_clock: Callable[[], float] = time.monotonic) -> None:
         self.node_id = node_id
         self.store = ObjectStore(load_object_dictionary(node_id))
         self.store.set(NODE_ID_OBJECT, 0, node_id)
@@ -91,6 +94,8 @@ class SimulatedDrive:
             self.tpdo.touch()  # a quiet drive samples its PDO data at the next tick
             self.wake_ticker()
         self.store.write = write_and_touch  # type: ignore[method-assign]
+        self.comm = DriveComm(self, comm_clock)  # RPDO, EMCY, heartbeat (comm_clock: heartbeats)
+        self.heartbeat_tick = self.comm.tick
 
     def attach(self, node: canopen.LocalNode, network: canopen.Network,
                bitrate: Optional[int] = DEFAULT_BITRATE) -> None:
@@ -149,6 +154,7 @@ class SimulatedDrive:
     def _reset_done(self, cause: str) -> None:
         self.store.set(NODE_ID_OBJECT, 0, self.node_id)
         self.tpdo.reset()  # the PDO objects are back at their saved values
+        self.comm.reset()  # so are RPDO, EMCY and heartbeat objects: supervision starts again
         self._set_state(NmtState.INITIALISING)
         self.boot(self)
 
@@ -181,6 +187,20 @@ class SimulatedDrive:
             self.tpdo.reset()  # nothing is sent outside Operational
 
 
+class _FrameListener(can.Listener):
+    """Every frame on the bus to every drive's RPDOs and heartbeat consumers (their
+    COB-IDs are configurable, so no fixed subscription fits)."""
+
+    def __init__(self, drives: dict[int, SimulatedDrive]) -> None:
+        self.drives = drives
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        for sim in tuple(self.drives.values()):
+            sim.comm.on_frame(msg.arbitration_id, bytes(msg.data))
+
+
 class Epos4Simulator:
     """The device behind the serial link; thread-safe, one command at a time."""
 
@@ -188,7 +208,8 @@ class Epos4Simulator:
                  clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
                  gateway_timeout: float = 0.3, segment_size: int = 255,
                  initiate_carries_data: bool = True, boot_time: float = 0.0,
-                 pdo_tick: float = TICK, can_bitrate: Optional[int] = DEFAULT_BITRATE) -> None:
+                 pdo_tick: float = TICK, can_bitrate: Optional[int] = DEFAULT_BITRATE,
+                 comm_clock: Callable[[], float] = time.monotonic) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
         if not boot_time >= 0:
@@ -200,7 +221,7 @@ class Epos4Simulator:
         self._boot_lock = threading.Lock()  # boot timers against close()
         self.clock = clock or time.monotonic
         self._lock = threading.Lock()
-        self.own = SimulatedDrive(node_id, self.clock)
+        self.own = SimulatedDrive(node_id, self.clock, comm_clock)
         self.drives: dict[int, SimulatedDrive] = {node_id: self.own}
         remote = sorted(set(drives) - {node_id})
         for nid in remote:
@@ -211,7 +232,7 @@ class Epos4Simulator:
         # on the virtual bus, so CAN clients reach them all directly.
         self._drive_net: Optional[canopen.Network] = connect_virtual(self.channel)
         for nid in remote:
-            self.drives[nid] = SimulatedDrive(nid, self.clock)
+            self.drives[nid] = SimulatedDrive(nid, self.clock, comm_clock)
         for nid, sim in self.drives.items():
             sim.boot = self._boot
             sim.attach(make_local_node(sim.store, nid), self._drive_net, can_bitrate)
@@ -220,8 +241,13 @@ class Epos4Simulator:
         self._drive_net.subscribe(0, self._on_nmt)
         self._pdo: Optional[PdoTicker] = PdoTicker(lambda: tuple(self.drives.values()),
                                                    self.clock, tick=pdo_tick)
+        self._heartbeat: Optional[HeartbeatTicker] = HeartbeatTicker(
+            lambda: tuple(self.drives.values()), comm_clock)
         for sim in self.drives.values():
             sim.wake_ticker = self._pdo.wake
+            sim.comm.wake_timer = self._heartbeat.wake
+        self._listener = _FrameListener(self.drives)
+        self._drive_net.notifier.add_listener(self._listener)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,
@@ -335,6 +361,9 @@ class Epos4Simulator:
         if self._pdo is not None:
             self._pdo.close()
             self._pdo = None
+        if self._heartbeat is not None:
+            self._heartbeat.close()
+            self._heartbeat = None
         with self._boot_lock:
             for sim in self.drives.values():
                 if sim.boot_timer is not None:
