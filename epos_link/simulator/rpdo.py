@@ -26,8 +26,8 @@ Reception, with what is **chosen** where CiA 301 leaves it to the device:
 * length (CiA 301 7.2.2.2, as CANopenNode's ``CO_PDO_receive`` implements it):
   fewer data bytes than mapped: not processed, EMCY 8210h "PDO not processed
   due to length error"; more: the first bytes are used, EMCY 8220h "PDO length
-  exceeded". The EMCY goes out once per error event: again only after a frame
-  of the right length (chosen). The drive does not go into FAULT and 1001h and
+  exceeded". The EMCY goes out once per error event: not again for the same
+  error until a frame of the right length came (chosen). The drive does not go into FAULT and 1001h and
   603Fh are not changed for it (chosen: the EPOS4 error table names 8210h but
   our sources do not give its reaction);
 * the mapped objects are written through the store, as an SDO download
@@ -73,7 +73,7 @@ class ReceivePdos:
         self.numbers: Tuple[int, ...] = tuple(
             n for n in range(512) if 0x1400 + n in store.od and 0x1600 + n in store.od)
         self._plans: Optional[Dict[int, _Plan]] = None  # by COB-ID; None: read the objects again
-        self._length_error: Dict[int, bool] = {}  # RPDO number -> an EMCY was sent for it
+        self._length_error: Dict[int, int] = {}  # RPDO number -> the EMCY sent for it last
         for n in self.numbers:
             install_mapping_rules(store, 0x1400 + n, 0x1600 + n, self.changed,
                                   lambda: self.refuse_mapping, receive=True)
@@ -113,13 +113,13 @@ class ReceivePdos:
             return None
         if len(data) != plan.size:
             emcy = EMCY_PDO_LENGTH if len(data) < plan.size else EMCY_PDO_LENGTH_EXCEEDED
-            first = not self._length_error.get(plan.number, False)
-            self._length_error[plan.number] = True
+            first = self._length_error.get(plan.number) != emcy
+            self._length_error[plan.number] = emcy
             if len(data) < plan.size:
                 return emcy if first else None
         else:
             emcy, first = None, False
-            self._length_error[plan.number] = False
+            self._length_error.pop(plan.number, None)
         for var, offset, size in plan.objects:
             try:
                 self.store.write(var.index, var.subindex, bytes(data[offset:offset + size]))
