@@ -112,6 +112,10 @@ class SimulatedDrive:
 
         # An instance attribute, set before add_node subscribes it to the bus.
         node.sdo.on_request = on_request  # type: ignore[method-assign]
+        # canopen's NmtSlave starts its own heartbeat producer on a 1017h write, with a
+        # state it never updates; the drive's producer is epos_link.simulator.heartbeat.
+        if node.nmt.on_write in node._write_callbacks:
+            node._write_callbacks.remove(node.nmt.on_write)
         self.local_node = node
         self.network = network
         network.add_node(node)
