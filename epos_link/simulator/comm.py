@@ -35,7 +35,7 @@ any other program on the channel do).
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable, Final
+from typing import TYPE_CHECKING, Callable, Dict, Final
 
 import can
 
@@ -48,7 +48,7 @@ from .rpdo import ReceivePdos
 if TYPE_CHECKING:
     from .core import SimulatedDrive
 
-__all__ = ["ABORT_CONNECTION", "DriveComm", "EMCY_HEARTBEAT"]
+__all__ = ["ABORT_CONNECTION", "DriveComm", "EMCY_HEARTBEAT", "FrameListener"]
 
 ABORT_CONNECTION: Final = 0x6007
 EMCY_HEARTBEAT: Final = 0x8130  # EPOS4 "CAN heartbeat error"
@@ -132,3 +132,17 @@ class DriveComm:
         command = _COMMANDS.get(option)
         if command is not None:
             drive.device_control(command)
+
+
+class FrameListener(can.Listener):
+    """Every frame on the bus to every drive's RPDOs and heartbeat consumers (their
+    COB-IDs are configurable, so no fixed subscription fits)."""
+
+    def __init__(self, drives: Dict[int, "SimulatedDrive"]) -> None:
+        self.drives = drives
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        for sim in tuple(self.drives.values()):
+            sim.comm.on_frame(msg.arbitration_id, bytes(msg.data))

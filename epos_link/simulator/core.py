@@ -24,7 +24,15 @@ NMT (guide 3.3.3, Table 3-13), per simulated drive:
   LSS and heartbeat), so the gateway reports 0x05040000 after its timeout;
 * in Operational a drive sends its transmit PDOs on the virtual bus
   (:mod:`epos_link.simulator.pdo`: event-driven, mapped through 0x1800/0x1A00
-  as on an EPOS4); the serial gateway carries no PDOs (guide chapter 5);
+  as on an EPOS4) and acts on its receive PDOs (:mod:`epos_link.simulator.rpdo`:
+  1400h-1403h/1600h-1603h as maxon's EDS, controlword in each); the serial
+  gateway carries no PDOs (guide chapter 5);
+* EMCY (1014h) at every fault and fault reset, in Pre-Operational and
+  Operational; heartbeat producer (1017h) in Pre-Operational, Operational and
+  Stopped; heartbeat consumer (1016h) with the 6007h reaction to a lost
+  heartbeat (:mod:`epos_link.simulator.comm`, one listener for all frames and
+  one timer thread, :class:`~epos_link.simulator.heartbeat.HeartbeatTicker`,
+  on ``comm_clock``, default ``time.monotonic``);
 * **chosen**: the serial link (node 0 or the device's own id) keeps working
   in every NMT state. Table 3-13 describes the CAN interface; USB/RS232 is a
   separate channel (the guide's "Wrong NMT state error" 0x0F00FFC0 is not
@@ -47,7 +55,7 @@ from .drive import Drive
 from .nmt import NmtState, next_state
 from .canbus import DEFAULT_BITRATE, sdo_answer_due, wait_until
 from .pdo import TICK, PdoTicker, TransmitPdos
-from .comm import DriveComm
+from .comm import DriveComm, FrameListener
 from .heartbeat import HeartbeatTicker
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
@@ -191,20 +199,6 @@ class SimulatedDrive:
             self.tpdo.reset()  # nothing is sent outside Operational
 
 
-class _FrameListener(can.Listener):
-    """Every frame on the bus to every drive's RPDOs and heartbeat consumers (their
-    COB-IDs are configurable, so no fixed subscription fits)."""
-
-    def __init__(self, drives: dict[int, SimulatedDrive]) -> None:
-        self.drives = drives
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-            return
-        for sim in tuple(self.drives.values()):
-            sim.comm.on_frame(msg.arbitration_id, bytes(msg.data))
-
-
 class Epos4Simulator:
     """The device behind the serial link; thread-safe, one command at a time."""
 
@@ -250,7 +244,7 @@ class Epos4Simulator:
         for sim in self.drives.values():
             sim.wake_ticker = self._pdo.wake
             sim.comm.wake_timer = self._heartbeat.wake
-        self._listener = _FrameListener(self.drives)
+        self._listener = FrameListener(self.drives)
         self._drive_net.notifier.add_listener(self._listener)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)

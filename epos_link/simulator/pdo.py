@@ -1,5 +1,8 @@
 """Transmit PDOs of a simulated drive, configured like an EPOS4's (0x1800/0x1A00 ...).
 
+The mapping rules below are shared with the receive PDOs
+(:func:`install_mapping_rules`; :mod:`epos_link.simulator.rpdo`).
+
 Objects (CiA 301 V4.2 7.5.2.37 TPDO communication, 7.5.2.38 TPDO mapping;
 guide 3.3.3.1 and Figure 3-23 for the default COB-IDs):
 
