@@ -658,7 +658,8 @@ def test_second_fault_keeps_state_and_updates_code() -> None:
     assert transitions_of(d, before) == [] and read(d, 0x603F) == 0x8611
     with pytest.raises(ValueError):
         d.inject_fault("overheating")
-    assert set(FAULTS) == {"limit_positive", "limit_negative", "following_error", "software_limit", "sto"}
+    assert set(FAULTS) == {"limit_positive", "limit_negative", "following_error", "software_limit", "sto",
+                           "heartbeat"}
 
 
 # -- time -------------------------------------------------------------------------------------------

@@ -24,7 +24,15 @@ NMT (guide 3.3.3, Table 3-13), per simulated drive:
   LSS and heartbeat), so the gateway reports 0x05040000 after its timeout;
 * in Operational a drive sends its transmit PDOs on the virtual bus
   (:mod:`epos_link.simulator.pdo`: event-driven, mapped through 0x1800/0x1A00
-  as on an EPOS4); the serial gateway carries no PDOs (guide chapter 5);
+  as on an EPOS4) and acts on its receive PDOs (:mod:`epos_link.simulator.rpdo`:
+  1400h-1403h/1600h-1603h as maxon's EDS, controlword in each); the serial
+  gateway carries no PDOs (guide chapter 5);
+* EMCY (1014h) at every fault and fault reset, in Pre-Operational and
+  Operational; heartbeat producer (1017h) in Pre-Operational, Operational and
+  Stopped; heartbeat consumer (1016h) with the 6007h reaction to a lost
+  heartbeat (:mod:`epos_link.simulator.comm`, one listener for all frames and
+  one timer thread, :class:`~epos_link.simulator.heartbeat.HeartbeatTicker`,
+  on ``comm_clock``, default ``time.monotonic``);
 * **chosen**: the serial link (node 0 or the device's own id) keeps working
   in every NMT state. Table 3-13 describes the CAN interface; USB/RS232 is a
   separate channel (the guide's "Wrong NMT state error" 0x0F00FFC0 is not
@@ -47,6 +55,8 @@ from .drive import Drive
 from .nmt import NmtState, next_state
 from .canbus import DEFAULT_BITRATE, sdo_answer_due, wait_until
 from .pdo import TICK, PdoTicker, TransmitPdos
+from .comm import DriveComm, FrameListener
+from .heartbeat import HeartbeatTicker
 from .gateway import SDO_TIMEOUT_ABORT, CanGateway, connect_virtual
 from .od import ObjectStore, load_object_dictionary, make_local_node
 
@@ -66,7 +76,8 @@ def _locked(lock: threading.RLock, fn: Callable[..., Any]) -> Callable[..., Any]
 class SimulatedDrive:
     """One drive: object store, CiA 402 model, NMT state and (behind the gateway) its LocalNode."""
 
-    def __init__(self, node_id: int, clock: Callable[[], float]) -> None:
+    def __init__(self, node_id: int, clock: Callable[[], float],
+                 comm_clock: Callable[[], float] = time.monotonic) -> None:
         self.node_id = node_id
         self.store = ObjectStore(load_object_dictionary(node_id))
         self.store.set(NODE_ID_OBJECT, 0, node_id)
@@ -91,6 +102,8 @@ class SimulatedDrive:
             self.tpdo.touch()  # a quiet drive samples its PDO data at the next tick
             self.wake_ticker()
         self.store.write = write_and_touch  # type: ignore[method-assign]
+        self.comm = DriveComm(self, comm_clock)  # RPDO, EMCY, heartbeat (comm_clock: heartbeats)
+        self.heartbeat_tick = self.comm.tick
 
     def attach(self, node: canopen.LocalNode, network: canopen.Network,
                bitrate: Optional[int] = DEFAULT_BITRATE) -> None:
@@ -107,6 +120,10 @@ class SimulatedDrive:
 
         # An instance attribute, set before add_node subscribes it to the bus.
         node.sdo.on_request = on_request  # type: ignore[method-assign]
+        # canopen's NmtSlave starts its own heartbeat producer on a 1017h write, with a
+        # state it never updates; the drive's producer is epos_link.simulator.heartbeat.
+        if node.nmt.on_write in node._write_callbacks:
+            node._write_callbacks.remove(node.nmt.on_write)
         self.local_node = node
         self.network = network
         network.add_node(node)
@@ -149,6 +166,7 @@ class SimulatedDrive:
     def _reset_done(self, cause: str) -> None:
         self.store.set(NODE_ID_OBJECT, 0, self.node_id)
         self.tpdo.reset()  # the PDO objects are back at their saved values
+        self.comm.reset()  # so are RPDO, EMCY and heartbeat objects: supervision starts again
         self._set_state(NmtState.INITIALISING)
         self.boot(self)
 
@@ -188,7 +206,8 @@ class Epos4Simulator:
                  clock: Optional[Callable[[], float]] = None, channel: Optional[str] = None,
                  gateway_timeout: float = 0.3, segment_size: int = 255,
                  initiate_carries_data: bool = True, boot_time: float = 0.0,
-                 pdo_tick: float = TICK, can_bitrate: Optional[int] = DEFAULT_BITRATE) -> None:
+                 pdo_tick: float = TICK, can_bitrate: Optional[int] = DEFAULT_BITRATE,
+                 comm_clock: Callable[[], float] = time.monotonic) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
         if not boot_time >= 0:
@@ -200,7 +219,7 @@ class Epos4Simulator:
         self._boot_lock = threading.Lock()  # boot timers against close()
         self.clock = clock or time.monotonic
         self._lock = threading.Lock()
-        self.own = SimulatedDrive(node_id, self.clock)
+        self.own = SimulatedDrive(node_id, self.clock, comm_clock)
         self.drives: dict[int, SimulatedDrive] = {node_id: self.own}
         remote = sorted(set(drives) - {node_id})
         for nid in remote:
@@ -211,7 +230,7 @@ class Epos4Simulator:
         # on the virtual bus, so CAN clients reach them all directly.
         self._drive_net: Optional[canopen.Network] = connect_virtual(self.channel)
         for nid in remote:
-            self.drives[nid] = SimulatedDrive(nid, self.clock)
+            self.drives[nid] = SimulatedDrive(nid, self.clock, comm_clock)
         for nid, sim in self.drives.items():
             sim.boot = self._boot
             sim.attach(make_local_node(sim.store, nid), self._drive_net, can_bitrate)
@@ -220,8 +239,13 @@ class Epos4Simulator:
         self._drive_net.subscribe(0, self._on_nmt)
         self._pdo: Optional[PdoTicker] = PdoTicker(lambda: tuple(self.drives.values()),
                                                    self.clock, tick=pdo_tick)
+        self._heartbeat: Optional[HeartbeatTicker] = HeartbeatTicker(
+            lambda: tuple(self.drives.values()), comm_clock)
         for sim in self.drives.values():
             sim.wake_ticker = self._pdo.wake
+            sim.comm.wake_timer = self._heartbeat.wake
+        self._listener = FrameListener(self.drives)
+        self._drive_net.notifier.add_listener(self._listener)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,
@@ -335,6 +359,9 @@ class Epos4Simulator:
         if self._pdo is not None:
             self._pdo.close()
             self._pdo = None
+        if self._heartbeat is not None:
+            self._heartbeat.close()
+            self._heartbeat = None
         with self._boot_lock:
             for sim in self.drives.values():
                 if sim.boot_timer is not None:

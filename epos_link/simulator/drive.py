@@ -139,6 +139,9 @@ class Drive(Kinematics):
         self.coast_deceleration = float(coast_deceleration)  # rpm/s, power stage off
         self.safety = SafetyLog()
         self.on_power_up: Callable[[str], None] | None = None
+        # (error code, 1001h) at every error event and fault reset (code 0): the EMCY
+        # producer (CiA 301 7.2.7, guide 3.3.3.4: once per error event).
+        self.on_error: Callable[[int, int], None] | None = None
         # (time, transition number, new state), newest last.
         self.history: deque[tuple[float, int, State]] = deque(maxlen=256)
         self._self_test_time = float(self_test_time)
@@ -340,6 +343,7 @@ class Drive(Kinematics):
         st.set(0x1001, 0, st.get_int(0x1001) | spec.error_register)
         st.set(0x60FD, 0, st.get_int(0x60FD) | spec.digital_inputs)
         push_history(st, spec.error_code)
+        self._error_event(spec.error_code)
         self._record(EventKind.FAULT, f"0x{spec.error_code:04X} {spec.name}", self.velocity_increments)
         if kind == "following_error":
             self._following_error = True
@@ -412,6 +416,7 @@ class Drive(Kinematics):
                 self._homing_status = HomingStatus.IDLE
             for index in (0x603F, 0x1001, 0x60FD):
                 self.store.set(index, 0, 0)
+            self._error_event(0x0000)  # CiA 301 Table 21: "error reset or no error"
         if was_powered and not self._powered() and v != 0.0:
             self._record(EventKind.UNSAFE_STOP, f"transition {number} to {state.name}", v)
         if number == 11 and self.store.get_int(0x605A) == 0:  # disable drive function at once
@@ -500,6 +505,22 @@ class Drive(Kinematics):
             self.power_cycle()
         else:
             self.inject_fault(kind)
+
+    def device_control(self, command: Command) -> None:
+        """A device control command that does not come from 6040h: the reaction to a
+        lost connection (CiA 402-2 6007h: 2 disable voltage, 3 quick stop). The
+        controlword keeps its value; the transition and its ramp run as for 6040h."""
+        self.sync()
+        state_before, pending_before = self._state, self._pending
+        self._command(command)
+        if self._state is not state_before or self._pending != pending_before:
+            self._plan()
+        self._track_goal(command.value)
+        self._run_until(self._now)
+
+    def _error_event(self, code: int) -> None:
+        if self.on_error is not None:
+            self.on_error(code, self.store.get_int(0x1001))
 
     # -- internals: modes ------------------------------------------------------------------
 

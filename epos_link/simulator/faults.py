@@ -4,15 +4,17 @@ Pure. Codes, error register bits and reactions follow the EPOS4
 Firmware Specification's error table (section 7.2 "Error codes"), as
 transcribed in public EPOS4 code (the manual itself is not among our
 sources): 0x8A80 negative limit switch, 0x8A81 positive limit switch, 0x8A82
-software position limit, 0x8A88 STO, 0x8611 following error; their names
+software position limit, 0x8A88 STO, 0x8611 following error, 0x8130 CAN
+heartbeat error (the heartbeat consumer, not a 2100h command); their names
 are in :data:`epos_link.codes.DEVICE_ERRORS`. The table's
 reaction column says what the drive does: "f" = the fault reaction of 605Eh
 (default: quick stop ramp), "d" = disable the power stage at once.
 
 Error register 1001h: bit 0 "generic" is set with every error (CiA 301
 7.5.2.2), bit 7 is maxon's "motion error" (the table's error register
-column). 60FDh digital inputs: bit 0 negative limit switch, bit 1 positive
-limit switch, bit 2 home switch (CiA 402-2 60FDh).
+column), bit 4 "communication error" (CiA 301). 60FDh digital inputs: bit
+0 negative limit switch, bit 1 positive limit switch, bit 2 home switch
+(CiA 402-2 60FDh).
 
 1003h "Pre-defined error field" (CiA 301 7.5.2.4): sub 0 is the number of
 errors; writing 0 clears the history, any other value is refused with
@@ -65,7 +67,7 @@ class FaultSpec:
         return describe_device_error(self.error_code)
 
 
-_GENERIC, _MOTION = 0x01, 0x80
+_GENERIC, _COMMUNICATION, _MOTION = 0x01, 0x10, 0x80
 
 FAULTS: Mapping[str, FaultSpec] = MappingProxyType({
     "limit_negative": FaultSpec(0x8A80, _GENERIC | _MOTION, 0x1,
@@ -76,6 +78,9 @@ FAULTS: Mapping[str, FaultSpec] = MappingProxyType({
                                 internal_limit=True),
     "sto": FaultSpec(0x8A88, _GENERIC, reaction=Reaction.DISABLE),
     "following_error": FaultSpec(0x8611, _GENERIC | _MOTION),
+    # The heartbeat consumer's event with 6007h = 1 "fault signal" (CiA 402-2 6007h);
+    # 1001h bit 4 "communication error" (CiA 301 7.5.2.2). epos_link.simulator.comm.
+    "heartbeat": FaultSpec(0x8130, _GENERIC | _COMMUNICATION),
 })
 
 POWER_CYCLE_COMMAND = "power_cycle"

@@ -1,5 +1,8 @@
 """Transmit PDOs of a simulated drive, configured like an EPOS4's (0x1800/0x1A00 ...).
 
+The mapping rules below are shared with the receive PDOs
+(:func:`install_mapping_rules`; :mod:`epos_link.simulator.rpdo`).
+
 Objects (CiA 301 V4.2 7.5.2.37 TPDO communication, 7.5.2.38 TPDO mapping;
 guide 3.3.3.1 and Figure 3-23 for the default COB-IDs):
 
@@ -95,6 +98,65 @@ class _Plan:
     objects: Tuple[Tuple[ODVariable, int], ...]  # (variable, bytes)
 
 
+
+# -- the mapping rules, shared with the receive PDOs (epos_link.simulator.rpdo) ------------
+
+def mapping_subs(store: ObjectStore, index: int) -> List[int]:
+    return sorted(getattr(store.od[index], "subindices", {}))
+
+
+def mapped_variable(store: ObjectStore, entry: int) -> ODVariable:
+    """The object a mapping entry (index << 16 | subindex << 8 | bits) names, or 06020000h."""
+    try:
+        return store.variable(entry >> 16, (entry >> 8) & 0xFF)
+    except SdoAbortedError:
+        raise SdoAbortedError(ABORT_NO_OBJECT) from None
+
+
+def install_mapping_rules(store: ObjectStore, com: int, mapping: int, changed: Callable[[], None],
+                          refuse: Callable[[], bool], *, receive: bool = False) -> None:
+    """The SDO download rules of the module docstring on one PDO's communication (``com``)
+    and mapping (``mapping``) objects; ``changed()`` runs before any accepted change is
+    stored. A receive PDO maps only objects that can be written (CiA 301 7.5.2.36:
+    an RPDO writes its objects), else 06040041h."""
+
+    def check_cob_id(value: Value) -> None:
+        assert isinstance(value, int)
+        changed()
+        old = store.get_int(com, 1)
+        if not old & NOT_VALID and not value & NOT_VALID and (old ^ value) & COB_ID_MASK:
+            raise SdoAbortedError(ABORT_RANGE)  # a valid PDO keeps its identifier
+
+    def check_map(sub: int, value: Value) -> None:
+        assert isinstance(value, int)
+        changed()
+        if not store.get_int(com, 1) & NOT_VALID:
+            raise SdoAbortedError(ABORT_UNSUPPORTED)  # destroy the PDO first
+        if sub == 0:
+            if value > MAX_ENTRIES or value > len(mapping_subs(store, mapping)) - 1:
+                raise SdoAbortedError(ABORT_MAP_LENGTH)
+            entries = [store.get_int(mapping, s) for s in range(1, value + 1)]
+            if sum(e & 0xFF for e in entries) > 64:
+                raise SdoAbortedError(ABORT_MAP_LENGTH)
+            return
+        if store.get_int(mapping, 0) != 0:
+            raise SdoAbortedError(ABORT_UNSUPPORTED)  # number of entries first set to 0
+        if value == 0:
+            return  # an empty entry
+        if refuse():
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        var = mapped_variable(store, value)
+        if not var.pdo_mappable or len(var) != value & 0xFF or (receive and not var.writable):
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+
+    store.add_write_hook(com, 1, check_cob_id)
+    for sub in mapping_subs(store, com):
+        if sub != 1:
+            store.add_write_hook(com, sub, lambda v: changed())
+    for sub in mapping_subs(store, mapping):
+        store.add_write_hook(mapping, sub, lambda v, sub=sub: check_map(sub, v))
+
+
 class TransmitPdos:
     """The TPDOs of one drive's object store: mapping rules and what is due to send."""
 
@@ -107,13 +169,8 @@ class TransmitPdos:
         self._plans: Optional[Tuple[_Plan, ...]] = None  # None: read the objects again
         self._next_sample = float("-inf")  # a quiet drive is sampled again at this time
         for n in self.numbers:
-            com, mapping = 0x1800 + n, 0x1A00 + n
-            store.add_write_hook(com, 1, lambda v, n=n: self._check_cob_id(n, v))
-            for sub in self._mapping_subs(com):
-                if sub != 1:
-                    store.add_write_hook(com, sub, lambda v: self._changed())
-            for sub in self._mapping_subs(mapping):
-                store.add_write_hook(mapping, sub, lambda v, n=n, sub=sub: self._check_map(n, sub, v))
+            install_mapping_rules(store, 0x1800 + n, 0x1A00 + n, self._changed,
+                                  lambda: self.refuse_mapping)
 
     def _changed(self) -> None:
         self._plans = None  # the hook runs before the value is stored: plan again next time
@@ -129,50 +186,6 @@ class TransmitPdos:
     def next_sample(self) -> float:
         """When this drive wants to be sampled again (-inf: at the next tick)."""
         return self._next_sample
-
-    def _mapping_subs(self, index: int) -> List[int]:
-        return sorted(getattr(self.store.od[index], "subindices", {}))
-
-    # -- SDO download rules ----------------------------------------------------------
-
-    def _cob_id(self, n: int) -> int:
-        return self.store.get_int(0x1800 + n, 1)
-
-    def _check_cob_id(self, n: int, value: Value) -> None:
-        assert isinstance(value, int)
-        self._changed()
-        old = self._cob_id(n)
-        if not old & NOT_VALID and not value & NOT_VALID and (old ^ value) & COB_ID_MASK:
-            raise SdoAbortedError(ABORT_RANGE)  # a valid PDO keeps its identifier
-
-    def _check_map(self, n: int, sub: int, value: Value) -> None:
-        assert isinstance(value, int)
-        self._changed()
-        if not self._cob_id(n) & NOT_VALID:
-            raise SdoAbortedError(ABORT_UNSUPPORTED)  # destroy the PDO first
-        index = 0x1A00 + n
-        if sub == 0:
-            if value > MAX_ENTRIES or value > len(self._mapping_subs(index)) - 1:
-                raise SdoAbortedError(ABORT_MAP_LENGTH)
-            entries = [self.store.get_int(index, s) for s in range(1, value + 1)]
-            if sum(e & 0xFF for e in entries) > 64:
-                raise SdoAbortedError(ABORT_MAP_LENGTH)
-            return
-        if self.store.get_int(index, 0) != 0:
-            raise SdoAbortedError(ABORT_UNSUPPORTED)  # number of entries first set to 0
-        if value == 0:
-            return  # an empty entry
-        if self.refuse_mapping:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        var = self._mapped(value)
-        if not var.pdo_mappable or len(var) != value & 0xFF:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-
-    def _mapped(self, entry: int) -> ODVariable:
-        try:
-            return self.store.variable(entry >> 16, (entry >> 8) & 0xFF)
-        except SdoAbortedError:
-            raise SdoAbortedError(ABORT_NO_OBJECT) from None
 
     # -- transmission ------------------------------------------------------------------
 
@@ -192,7 +205,7 @@ class TransmitPdos:
             if cob_id & NOT_VALID or get(0x1800 + n, 2) not in EVENT_DRIVEN:
                 continue
             entries = [get(0x1A00 + n, sub) for sub in range(1, get(0x1A00 + n, 0) + 1)]
-            objects = tuple((self._mapped(e), (e & 0xFF) // 8) for e in entries if e)
+            objects = tuple((mapped_variable(self.store, e), (e & 0xFF) // 8) for e in entries if e)
             plans.append(_Plan(n, cob_id & COB_ID_MASK, get(0x1800 + n, 3) * 1e-4,
                                get(0x1800 + n, 5) * 1e-3, objects))
         return tuple(plans)
@@ -301,4 +314,4 @@ class PdoTicker:
 
 
 __all__ = ["ABORT_MAP_LENGTH", "ABORT_NOT_MAPPABLE", "ABORT_UNSUPPORTED", "PdoTicker",
-           "TICK", "TransmitPdos"]
+           "TICK", "TransmitPdos", "install_mapping_rules", "mapped_variable", "mapping_subs"]
