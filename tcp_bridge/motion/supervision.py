@@ -46,7 +46,7 @@ import logging
 from dataclasses import dataclass
 from typing import Dict, Final
 
-from ..bus.sdo import SdoPort
+from ..bus.sdo import NodeSilent, SdoPort
 from ..errors import DeviceFailure
 
 log = logging.getLogger("tcp_bridge.motion")
@@ -122,8 +122,14 @@ class Supervision:
                             "heartbeat (node %d, %d ms)", port.name, (held >> 16) & 0xFF,
                             held & 0xFFFF, s.producer_id, s.consumer_ms)
             port.write(CONSUMER_HEARTBEAT_TIME, CONSUMER_SUB, 0, size=4, signed=False)
-        self.written = True
-        port.write(CONSUMER_HEARTBEAT_TIME, CONSUMER_SUB, entry, size=4, signed=False)
+        self.written = True  # a lost answer may still have set it: released at shutdown
+        try:
+            port.write(CONSUMER_HEARTBEAT_TIME, CONSUMER_SUB, entry, size=4, signed=False)
+        except NodeSilent:
+            raise
+        except DeviceFailure:
+            self.written = False  # refused (an abort): the drive holds no entry of ours
+            raise
         log.info("%s: heartbeat consumer on: node %d every %d ms, at most %d ms silence, "
                  "then 6007h = %d", port.name, s.producer_id, s.period_ms, s.consumer_ms,
                  s.abort_connection)
