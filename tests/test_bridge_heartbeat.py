@@ -279,3 +279,14 @@ def test_check_says_what_stops_the_axes_when_the_host_dies() -> None:
     assert "no heartbeat" in none and "keep their last command" in none
     watched, = liveness_notes(table(heartbeat_ms=100))
     assert "quick stop" in watched and "after 300 ms" in watched and "8130h" in watched
+
+
+def test_the_hardware_guide_says_what_protects_the_axes_on_each_kind_of_bus() -> None:
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "hardware.md").read_text()
+    section = doc[doc.index("## When the host dies"):]
+    section = section[:section.index("\n## ", 1)]
+    for words in ("`canopen` with `heartbeat_ms`", "`canopen` without `heartbeat_ms`", "`epos`",
+                  "forwards SDO only", "what protects the axes", "STO", "8130h"):
+        assert words in section, words
