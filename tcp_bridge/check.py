@@ -21,6 +21,13 @@ bus, an ``EposClient`` on a serial/USB link, or the embedded simulator. The
 state file is read (so that inversion and offset of S22/S25 apply to the
 position shown) and never written.
 
+After the table, one line per bus says what stops its axes if the host (the
+bridge) dies (:func:`liveness_notes`; docs/hardware.md, "When the host dies"):
+the drives' heartbeat consumer on a ``canopen`` bus with ``heartbeat_ms``;
+nothing from the host otherwise, nor through an EPOS4 gateway, which forwards
+SDO only. With ``--json`` these lines go to stderr. The check itself sends no
+heartbeat: it opens buses, the engine is what starts the heartbeat.
+
 Time: an absent node costs one SDO timeout (its first read), then the check
 moves on; one that answers costs a dozen uploads. Buses are checked one after
 the other, each closed before the next opens.
@@ -120,6 +127,46 @@ def check(axis_table: AxisTable, *, opener: Optional[Opener] = None) -> List[Axi
     return [reports[addr] for addr in sorted(reports)]
 
 
+GATEWAY_NOTE = ("through the EPOS4 gateway the host's liveness cannot reach the CAN bus: the "
+                "gateway forwards SDO only (Communication Guide chapter 5), and the guide names "
+                "no watchdog of the USB/RS232 host (2005h/2006h end an incomplete frame, 2.2.7); "
+                "if the bridge dies, the drives keep their last command.\n"
+                "  What protects the axes then: the drives' own limits (software position limits "
+                "607Dh, max profile velocity 607Fh, max following error 6065h) and a hardware "
+                "STO / emergency stop circuit (docs/hardware.md, \"When the host dies\")")
+
+
+def liveness_notes(axis_table: AxisTable) -> List[str]:
+    """One line per bus with axes: what stops them if the bridge's process dies."""
+    from .backends.heartbeat import heartbeat_settings
+
+    notes = []
+    for name, bus in axis_table.buses.items():
+        axes = [a for a in axis_table.axes.values() if a.bus == name and a.has_node]
+        if not axes:
+            continue
+        can = bus.backend == "canopen" or (bus.backend == "sim" and bus.options.get("link") == "can")
+        if bus.backend in ("epos", "sim") and not can:
+            notes.append(f"bus {name}: {GATEWAY_NOTE}")
+            continue
+        if not can:
+            continue  # instant and plug-in backends: nothing known to say
+        try:
+            hb = heartbeat_settings(name, dict(bus.options), axes)
+        except ConfigError:
+            continue  # the bus's row already says why it cannot be used
+        if hb is None:
+            notes.append(f"bus {name}: no heartbeat (heartbeat_ms unset): if the bridge dies, "
+                         "the drives keep their last command; set heartbeat_ms to have them stop")
+        else:
+            reaction = {3: "quick stop", 2: "disable voltage", 1: "fault"}[hb.abort_connection]
+            notes.append(f"bus {name}: the bridge's heartbeat (node {hb.producer_id}, every "
+                         f"{hb.period_ms} ms) is watched by each drive it enables: if the bridge "
+                         f"dies, a drive reacts ({reaction}, 6007h) after {hb.consumer_ms} ms "
+                         "without it and sends EMCY 8130h")
+    return notes
+
+
 def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
                opener: Opener) -> Dict[int, AxisReport]:
     try:
@@ -176,5 +223,7 @@ def run(args: argparse.Namespace, prog: str = "tcp-bridge check") -> int:
             print(as_json(report))
     else:
         print(format_table(reports))
+    for note in liveness_notes(axes):
+        print(note, file=sys.stderr if args.json else sys.stdout)
     return 0 if all(r.ok for r in reports) else 1
 

@@ -14,12 +14,17 @@ interface works::
     pdo_max_age = 0.1         # seconds: an older PDO value is read by SDO instead
     pdo_event_timer = 0.05    # seconds (at most 0.05): each drive sends at least this often
     pdo_inhibit_time = 0.01   # seconds between two position/velocity PDOs of a drive
+    heartbeat_ms = 100        # the bridge's heartbeat, which the drives watch (unset: none)
+    heartbeat_node_id = 127   # its node-ID; heartbeat_consumer_ms, abort_connection:
+                              # see tcp_bridge.backends.heartbeat
 
 The command layer uses ``node.sdo.upload/download``, so without ``pdo`` the
 EDS matters for tools, not for the bridge; "none" gives an empty dictionary.
 With ``pdo = true`` the TPDOs are mapped through canopen's PDO API, which needs
 the dictionary's 1800h/1A00h objects (and the mapped objects): an EDS is
-required.
+required. With ``heartbeat_ms`` each drive stops (quick stop by default) when
+the bridge's heartbeat stops (issue 23; :mod:`.heartbeat`,
+:mod:`tcp_bridge.motion.supervision`).
 """
 from __future__ import annotations
 
@@ -29,7 +34,9 @@ from typing import Any, Callable, Dict, Optional, Sequence
 
 import canopen
 
+from ..motion.supervision import Supervision
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
+from .heartbeat import HeartbeatProducer, heartbeat_settings
 from .pdo_status import PdoSettings, PdoStatus, StatusFeed
 
 
@@ -38,6 +45,7 @@ class FedNode(canopen.RemoteNode):  # type: ignore[misc]
     :class:`tcp_bridge.bus.sdo.SdoPort` consults for status reads."""
 
     status_feed: Optional[StatusFeed] = None
+    supervision: Optional[Supervision] = None  # heartbeat_ms: the drive's consumer
 
 
 def _pdo_settings(bus: str, options: Dict[str, Any]) -> Optional[PdoSettings]:
@@ -103,6 +111,7 @@ class CanopenBackend:
             raise ConfigError(f"bus {bus.name}: pdo = true needs an EDS (eds = \"default\" "
                               "or a path), for the PDO objects 1800h/1A00h")
         self.pdo: Optional[PdoStatus] = PdoStatus(bus.name, settings) if settings else None
+        heartbeat = heartbeat_settings(bus.name, options, axes)
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.05  # a quick notifier stop on close
         try:
@@ -112,6 +121,8 @@ class CanopenBackend:
                               f"{options.get('interface', '(python-can default)')} "
                               f"{options.get('channel', '')}: {_reason(exc, options.get('channel', 'can0'))}") from None
         self.nodes: Dict[int, FedNode] = {}
+        self.heartbeat: Optional[HeartbeatProducer] = (
+            HeartbeatProducer(bus.name, self.network, heartbeat) if heartbeat else None)
 
     def node(self, node_id: int) -> FedNode:
         node = self.nodes.get(node_id)
@@ -122,15 +133,25 @@ class CanopenBackend:
             self.network.add_node(node)
             if self.pdo is not None:
                 node.status_feed = self.pdo.add(node)
+            if self.heartbeat is not None:
+                node.supervision = self.heartbeat.supervision(node_id)
             self.nodes[node_id] = node
         return node
 
     def attach_worker(self, post: Callable[[Callable[[], Any]], None]) -> None:
-        """Called by the engine with its bus worker's ``post``: PDO mappings are set there."""
+        """Called by the engine with its bus worker's ``post``: PDO mappings are set there.
+        The bridge serves this bus from now on: its heartbeat starts (``tcp-bridge check``
+        never attaches, so it sends nothing)."""
+        if self.heartbeat is not None:
+            self.heartbeat.start()
         if self.pdo is not None:
             self.pdo.attach_worker(post)
 
     def close(self) -> None:
+        """Called after the bus worker stopped: the drives' heartbeat consumers are
+        switched off before the heartbeat stops (a clean shutdown trips nothing)."""
+        if self.heartbeat is not None:
+            self.heartbeat.stop(self.nodes.values())
         try:
             self.network.disconnect()
         except Exception:  # already gone (adapter unplugged): nothing left to release

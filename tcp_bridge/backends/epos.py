@@ -19,6 +19,7 @@ from typing import Any, Callable, Dict, Optional, Sequence
 
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import object_dictionary
+from .heartbeat import refuse_heartbeat
 
 
 # An EPOS4 answers a ReadObject within milliseconds (USB, or RS232 at 115200 Bd:
@@ -34,6 +35,7 @@ class EposBackend:
 
         self.name = bus.name
         options: Dict[str, Any] = dict(bus.options)
+        refuse_heartbeat(bus.name, options, "epos")
         self.eds = options.pop("eds", "none")
         gateway = options.pop("gateway_node_id", axes[0].node_id if axes else None)
         if client is None:

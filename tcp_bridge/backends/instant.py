@@ -200,6 +200,9 @@ class InstantBackend:
 
     def __init__(self, bus: Any = None, axes: Sequence[Any] = ()) -> None:
         options = dict(getattr(bus, "options", {}) or {})
+        from .heartbeat import refuse_heartbeat
+
+        refuse_heartbeat(getattr(bus, "name", "?"), options, "instant")  # no CAN bus here
         self._absent = set(options.get("absent", ()))
         self.nodes: Dict[int, FakeNode] = {}
         self.closed = False

@@ -27,9 +27,10 @@ from typing import Any, Dict, Final, List, Optional, Sequence, Tuple
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import CanopenBackend
 from .epos import EposBackend
+from .heartbeat import HEARTBEAT_OPTIONS
 
 CAN_OPTIONS: Final = ("eds", "sdo_timeout", "sdo_retries", "pdo", "pdo_max_age",
-                      "pdo_event_timer", "pdo_inhibit_time")
+                      "pdo_event_timer", "pdo_inhibit_time", *HEARTBEAT_OPTIONS)
 
 
 def _pop_nodes(options: Dict[str, Any], axes: Sequence[AxisConfig]) -> Tuple[int, List[int], float]:

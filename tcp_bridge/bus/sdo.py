@@ -27,7 +27,7 @@ from .shared_reads import NeedsBus
 log = logging.getLogger("tcp_bridge.bus.sdo")
 
 # (size in bytes, signed) by (index, subindex); subindex None = every subindex.
-# Sources: CiA 301 V4.2 7.5.2 (1001h), CiA 402-2 V4.0 object descriptions;
+# Sources: CiA 301 V4.2 7.5.2 (1001h, 1016h), CiA 402-2 V4.0 object descriptions;
 # 2000h: Technosoft motion error register (U16); 200Dh: Nanotec (assumed U8).
 OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
     (0x1001, None): (1, False), (0x2000, None): (2, False), (0x200D, None): (1, False),
@@ -42,6 +42,8 @@ OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
     (0x60FE, None): (4, False), (0x60FF, None): (4, True), (0x6502, None): (4, False),
     # maxon EPOS4 (EPOS4 EDS): SI unit velocity, main sensor resolution, encoder pulses.
     (0x60A9, None): (4, False), (0x3000, 5): (4, False), (0x3010, 1): (4, False),
+    # Heartbeat supervision (issue 23): CiA 301 7.5.2.19 1016h; CiA 402-2 6007h.
+    (0x1016, 0): (1, False), (0x1016, None): (4, False), (0x6007, None): (2, True),
 }
 
 

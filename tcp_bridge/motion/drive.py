@@ -20,6 +20,7 @@ from ..bus.sdo import NodeSilent, SdoPort
 from .nmt_stopped import answering
 from .recovery import Recovery
 from .start import MoveStarts, OutcomeUnknown
+from .supervision import Supervision
 
 log = logging.getLogger("tcp_bridge.motion")
 
@@ -84,6 +85,8 @@ class Cia402(MoveStarts, Recovery):
         self.listeners: List[Callable[[str], None]] = []
         self.coasting: Callable[[], bool] = lambda: self.port.read(VELOCITY_ACTUAL, 0) != 0
         self._own_reset_until = float("-inf")  # boot-ups before this are our own reset's
+        # The drive's heartbeat consumer (heartbeat_ms on a canopen bus), None without.
+        self.supervision: Optional[Supervision] = None
         watch = getattr(port, "watch", None)
         if watch is not None:
             watch(STATUSWORD, self._observe)
@@ -117,6 +120,8 @@ class Cia402(MoveStarts, Recovery):
         self.note_power_cycle("boot-up message received")
 
     def _tell(self, event: str) -> None:
+        if self.supervision is not None:  # a power-up or reset may have cleared 1016h
+            self.supervision.stale()
         for listener in self.listeners:
             listener(event)
 
@@ -247,6 +252,7 @@ class Cia402(MoveStarts, Recovery):
         """
         state = self.state()
         if state is State.OPERATION_ENABLED:
+            self.ensure_supervised()  # enabled by someone else: watched from now on
             return
         if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             raise DeviceFailure(f"{self.port.name}: in {state.name}; reset it (S17) first")
@@ -283,7 +289,15 @@ class Cia402(MoveStarts, Recovery):
                 restore.ignore_differences()
         self.restore_pending = False
         self.fell_back = False
+        self.ensure_supervised()  # after a reset above, which clears it
         self._enable_steps(Deadline(self._clock, self.timing.ack_timeout))
+
+    def ensure_supervised(self) -> None:
+        """Before enable and before a move: the drive's heartbeat consumer, if the bus
+        table asks for one, set up once per power-up (:mod:`.supervision`); raises
+        DeviceFailure (NAK) when the drive refuses it."""
+        if self.supervision is not None:
+            self.supervision.ensure(self.port)
 
     def _enable_steps(self, deadline: Deadline) -> None:
         # Halt rides along on every step (bit 8 is ignored outside OPERATION

@@ -105,6 +105,7 @@ class MoveStarts:
         for drive, _ in moves:
             # Every axis can move, or none is touched.
             drive._again(drive.require_enabled, retries)
+            drive._again(drive.ensure_supervised, retries)  # issue 23: never unwatched
         prepared: List[Tuple["Cia402", Move]] = [
             (drive, drive._again(partial(drive._prepare, what, deadline), retries))
             for drive, what in moves]

@@ -77,6 +77,8 @@ class AxisRuntime:
             port.on_write = lambda i, sub, value: self.written.__setitem__(ObjectRef(i, sub), value)
             self.drive.listeners.append(self._on_drive_event)
             self.drive.coasting = self._coasting
+            # canopen backend with heartbeat_ms: the drive's heartbeat consumer (issue 23).
+            self.drive.supervision = getattr(port.node, "supervision", None)
         nmt = getattr(getattr(port, "node", None), "nmt", None)
         if self.drive is not None and nmt is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
