@@ -15,7 +15,7 @@ EPOS4 has on top of them, as hooks on the store:
 60FFh          6060h refuses modes outside 6502h with 06090030h
 60A9h          SI unit velocity: rpm with a prefix 10^0..10^-6, else 06090030h
 3010h:01       encoder pulses: the drive re-plans in the new units
-6098h          homing method: only the supported methods, else 06090030h
+6098h          homing method: only maxon's methods (homing.py), else 06090030h
 1003h:00       error history: 0 clears it, anything else 06090030h
 2100h          simulator command (faults, power cycle), else 06090030h
 =============  ====================================================================
