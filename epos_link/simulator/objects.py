@@ -13,7 +13,7 @@ EPOS4 has on top of them, as hooks on the store:
 3000h:05       main sensor resolution = 4 x 3010h:01 (read-only, see units)
 6040h, 6060h,  handed to the drive model (controlword, mode, target velocity);
 60FFh          6060h refuses modes outside 6502h with 06090030h
-60A9h          SI unit velocity: rpm with a prefix 10^0..10^-6, else 06090030h
+60A9h          SI unit velocity: rpm with a prefix 10^0..10^-3, else 06090030h
 3010h:01       encoder pulses: the drive re-plans in the new units
 6098h          homing method: only maxon's methods (homing.py), else 06090030h
 1003h:00       error history: 0 clears it, anything else 06090030h
