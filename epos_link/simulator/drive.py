@@ -58,7 +58,10 @@ Decisions a client may notice (**chosen** where the manuals are silent):
 * 607Dh software limits clamp a pp or csp target (CiA 402-2 6.5.2; for csp
   as Nanotec N5 describes it, bit 11 "demand position above or below the
   limit values set in 607Dh") and set sw bit 11 until the next unclamped
-  set-point; min >= max switches them off. Profile
+  set-point; min >= max switches them off. A profile velocity move is not
+  clamped: where it passes a limit the drive raises 8A82h "software position
+  limit error" with the fault reaction (EPOS4 error table; see
+  :meth:`Kinematics._limit_crossing`). Profile
   velocity clamped by 607Fh/6080h also sets bit 11 (EPOS4: bit 11 "internal
   limit active" includes velocity limiting). Limit switch inputs are in 60FDh.
 * A relative target (cw bit 6) is relative to the preceding target; after
@@ -143,6 +146,7 @@ class Drive(Kinematics):
         self.history: deque[tuple[float, int, State]] = deque(maxlen=256)
         self._self_test_time = float(self_test_time)
         self._profile: Profile = hold(0.0, 0.0)
+        self._in_event = False  # the run loop is raising a fault at an earlier instant
         install_object_rules(self.store, self)
         self._power_up(start if start is not None else (clock() if clock is not None else 0.0))
         if clock is not None:
@@ -172,8 +176,12 @@ class Drive(Kinematics):
         self.update(self._now + dt)
 
     def sync(self) -> None:
-        """Catch up with the clock, if there is one (the store's ``before_access``)."""
-        if self.clock is not None:
+        """Catch up with the clock, if there is one (the store's ``before_access``).
+
+        Not while an event of the run loop is being handled: that event happens
+        at its own instant, before the clock's.
+        """
+        if self.clock is not None and not self._in_event:
             self.update(self.clock())
 
     # -- resets ------------------------------------------------------------------------
@@ -541,9 +549,20 @@ class Drive(Kinematics):
         if not self._cw & CW.NEW_SET_POINT and self._buffer is None:
             self._ack = False
 
-    def _clamp_position(self, target: int) -> tuple[int, bool]:
+    def _software_limits(self) -> tuple[int, int] | None:
+        """607Dh (min, max) in the counter's frame; None when min >= max switches them off."""
         lo, hi = self.store.get_int(0x607D, 1), self.store.get_int(0x607D, 2)
-        if lo >= hi:
-            lo, hi = _I32_MIN, _I32_MAX  # limits switched off
+        return None if lo >= hi else (lo, hi)
+
+    def _clamp_position(self, target: int) -> tuple[int, bool]:
+        lo, hi = self._software_limits() or (_I32_MIN, _I32_MAX)
         clamped = min(max(target, max(lo, _I32_MIN)), min(hi, _I32_MAX))
         return clamped, clamped != target
+
+    def _raise_fault(self, kind: str) -> None:
+        """A fault the model itself detects, at ``self._now`` (not the clock's time)."""
+        self._in_event = True
+        try:
+            self.inject_fault(kind)
+        finally:
+            self._in_event = False

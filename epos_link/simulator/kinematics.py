@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 
 from ..cia402 import CW, T_FAULT_REACTION_DONE, T_QUICK_STOP_DONE, T_SELF_TEST_DONE, State
 from .homing import HomingStatus, Leg, VirtualSwitches, plan_homing
-from .motion import Kind, Profile, hold, plan_position, plan_stop, plan_velocity
+from .motion import Kind, Profile, first_beyond, hold, plan_position, plan_stop, plan_velocity
 from .objects import Mode
 from .od import ObjectStore
 from .safety import EventKind
@@ -83,6 +83,10 @@ class Kinematics:
         def _update_ack(self) -> None: ...
 
         def _clamp_position(self, target: int) -> tuple[int, bool]: ...
+
+        def _software_limits(self) -> tuple[int, int] | None: ...
+
+        def _raise_fault(self, kind: str) -> None: ...
 
     # -- motion starts -----------------------------------------------------------------------
 
@@ -215,18 +219,46 @@ class Kinematics:
             self._profile = hold(t, p)
 
     def _run_until(self, t: float) -> None:
-        """Run the events due up to ``t`` in order: self-test end, ends of ramps."""
+        """Run the events due up to ``t`` in order: self-test end, a software
+        position limit passed, ends of ramps."""
         while True:
             if self._state is State.NOT_READY_TO_SWITCH_ON and self._self_test_until <= t:
                 self._now = max(self._now, self._self_test_until)
                 self._transition(*T_SELF_TEST_DONE)
                 continue
             profile = self._profile
-            if profile.kind in (Kind.POSITION, Kind.STOP) and profile.end_time <= t:
+            ends = profile.kind in (Kind.POSITION, Kind.STOP) and profile.end_time <= t
+            crossing = self._limit_crossing(min(t, profile.end_time) if ends else t)
+            if crossing is not None:
+                self._now = max(self._now, crossing)
+                self._raise_fault("software_limit")
+                continue
+            if ends:
                 self._now = max(self._now, profile.end_time)
                 self._profile_ended(profile)
                 continue
             return
+
+    def _limit_crossing(self, t: float) -> float | None:
+        """When, up to ``t``, a pv move passes a software position limit 607Dh.
+
+        The EPOS4 error table (Firmware Specification 7.2, as transcribed in
+        public EPOS4 code) lists 8A82h "Software position limit error" with the
+        fault reaction: a profile velocity move does not stop at 607Dh as a pp
+        target is clamped to it; it faults where it passes it. **Chosen**: the
+        check runs in pv in OPERATION ENABLED only (homing references the axis,
+        pp/csp targets are clamped), and an axis already beyond a limit faults
+        as soon as it moves further out.
+        """
+        if self._state is not State.OPERATION_ENABLED or self._mode is not Mode.PROFILE_VELOCITY:
+            return None
+        limits = self._software_limits()
+        if limits is None:
+            return None
+        lo, hi = (limit - self._offset for limit in limits)  # the counter's limits on the axis
+        times = [x for x in (first_beyond(self._profile, hi, 1, self._now, t),
+                             first_beyond(self._profile, lo, -1, self._now, t)) if x is not None]
+        return min(times) if times else None
 
     def _profile_ended(self, profile: Profile) -> None:
         self._profile = hold(profile.end_time, profile.final_position)
