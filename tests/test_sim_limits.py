@@ -12,10 +12,13 @@ inc/s, so the axis passes 500 at 0.1 + 495 / 100 = 5.05 s.
 from __future__ import annotations
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from epos_link.cia402 import State
 from epos_link.simulator.clock import VirtualClock
 from epos_link.simulator.drive import Drive, Mode
+from epos_link.simulator.motion import first_beyond, plan_position, plan_velocity
 from epos_link.simulator.od import ObjectStore, load_object_dictionary
 
 OD = load_object_dictionary(1)
@@ -103,3 +106,28 @@ def test_a_pp_target_beyond_the_limit_is_clamped_not_faulted() -> None:
     d.write_controlword(ENABLE | 0x10)
     d.advance(30.0)
     assert d.state is State.OPERATION_ENABLED and d.position == 500
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-1000, 1000), st.floats(-500, 500), st.floats(-2000, 2000), st.floats(1, 1000),
+       st.floats(1, 5000), st.floats(-1500, 1500), st.sampled_from([1, -1]), st.booleans())
+def test_first_beyond_is_the_first_outward_passage(p0: float, v0: float, target: float, vmax: float,
+                                                   acc: float, level: float, direction: int,
+                                                   velocity_mode: bool) -> None:
+    profile = (plan_velocity(0.0, p0, v0, target / 4, acc, acc) if velocity_mode
+               else plan_position(0.0, p0, v0, target, vmax, acc, acc))
+    horizon = profile.end_time + 1.0
+    found = first_beyond(profile, level, direction, 0.0, horizon)
+    tol = 1e-6 * (1 + abs(level) + abs(p0) + abs(target))
+
+    def outward(t: float) -> bool:
+        p, v = profile.state_at(t)
+        return direction * (p - level) > tol and direction * v > 0
+
+    samples = [horizon * i / 400 for i in range(401)]
+    if found is None:
+        assert not any(outward(t) for t in samples)
+    else:
+        p, _ = profile.state_at(found)
+        assert direction * (p - level) >= -tol
+        assert not any(outward(t) for t in samples if t < found - 1e-9)

@@ -33,6 +33,10 @@ What is modelled (CiA 402-2 V4.0 sections in brackets), in EPOS4 units
 * trapezoidal profiles in closed form (:mod:`~epos_link.simulator.motion`),
   velocity 6081h <= 607Fh, 6080h, accelerations 6083h/6084h/6085h <= 60C5h,
   planned in :mod:`~epos_link.simulator.kinematics` (which ramp for which state);
+* the monitors (:mod:`~epos_link.simulator.monitors`): 8A82h where a pv move
+  passes 607Dh, the following error 8611h from 6065h/6066h, the position
+  window 6067h/6068h for target reached; a blocked axis
+  (:meth:`Drive.block_axis`) makes 6062h and 6064h differ;
 * what matters for safety, in :attr:`Drive.safety`
   (:mod:`~epos_link.simulator.safety`): motion starts, power stage switched
   off while moving, resets while moving.
@@ -61,7 +65,7 @@ Decisions a client may notice (**chosen** where the manuals are silent):
   set-point; min >= max switches them off. A profile velocity move is not
   clamped: where it passes a limit the drive raises 8A82h "software position
   limit error" with the fault reaction (EPOS4 error table; see
-  :meth:`Kinematics._limit_crossing`). Profile
+  :mod:`~epos_link.simulator.monitors`). Profile
   velocity clamped by 607Fh/6080h also sets bit 11 (EPOS4: bit 11 "internal
   limit active" includes velocity limiting). Limit switch inputs are in 60FDh.
 * A relative target (cw bit 6) is relative to the preceding target; after
@@ -99,7 +103,16 @@ from ..cia402 import (
     decode_command,
 )
 from .clock import VirtualClock
-from .faults import FAULTS, POWER_CYCLE_COMMAND, SIMULATOR_COMMANDS, FaultSpec, Reaction, push_history
+from .faults import (
+    BLOCK_COMMAND,
+    FAULTS,
+    POWER_CYCLE_COMMAND,
+    RELEASE_COMMAND,
+    SIMULATOR_COMMANDS,
+    FaultSpec,
+    Reaction,
+    push_history,
+)
 from .objects import Mode, install_object_rules
 from .homing import HomingStatus, Leg, VirtualSwitches
 from .kinematics import Kinematics
@@ -147,6 +160,7 @@ class Drive(Kinematics):
         self._self_test_time = float(self_test_time)
         self._profile: Profile = hold(0.0, 0.0)
         self._in_event = False  # the run loop is raising a fault at an earlier instant
+        self._blocked_at: float | None = None  # a blocked axis stands here (monitors.py)
         install_object_rules(self.store, self)
         self._power_up(start if start is not None else (clock() if clock is not None else 0.0))
         if clock is not None:
@@ -233,8 +247,38 @@ class Drive(Kinematics):
 
     @property
     def position(self) -> int:
-        """6064h (and 6062h: the demand equals the actual value in this model)."""
+        """6064h position actual value."""
         return _wrap_i32(self._physical() + self._offset)
+
+    @property
+    def demand_position(self) -> int:
+        """6062h position demand value: the profile's position while the position loop
+        runs (power stage on); with it off, the actual position (monitors.py)."""
+        if not self._powered():
+            return self.position
+        return _wrap_i32(self._demand() + self._offset)
+
+    @property
+    def blocked(self) -> bool:
+        """Whether the axis is blocked (:meth:`block_axis`)."""
+        return self._blocked_at is not None
+
+    def block_axis(self) -> None:
+        """Jam the axis where it is now: 6064h stays, 6062h goes on (monitors.py, **chosen**)."""
+        self.sync()
+        if self._blocked_at is None:
+            self._blocked_at = self._physical()
+            self._plan()
+            self._run_until(self._now)
+
+    def release_axis(self) -> None:
+        """Free a blocked axis; the drive re-plans from where it stands, at rest."""
+        self.sync()
+        if self._blocked_at is not None:
+            self._profile = hold(self._now, self._blocked_at)
+            self._blocked_at = None
+            self._plan()
+            self._run_until(self._now)
 
     @property
     def axis_position(self) -> float:
@@ -252,7 +296,9 @@ class Drive(Kinematics):
 
     @property
     def velocity_increments(self) -> float:
-        """The axis velocity in increments per second."""
+        """The axis velocity in increments per second (0 while blocked)."""
+        if self._blocked_at is not None:
+            return 0.0
         return self._profile.state_at(self._now)[1]
 
     @property
@@ -380,6 +426,8 @@ class Drive(Kinematics):
         self._homing_status = HomingStatus.IDLE
         self._legs: deque[Leg] = deque()
         self._following_error = False
+        self._error_since: float | None = None  # following error above 6065h since (monitors.py)
+        self._settle_at: float | None = None  # end of the 6068h position window time
         self._fault: FaultSpec | None = None
         self._powered_at_fault = False
         self._pending: tuple[int, State] | None = None  # transition waiting for a ramp
@@ -393,8 +441,13 @@ class Drive(Kinematics):
         self._plan()
         self._run_until(self._now)
 
-    def _physical(self) -> float:
+    def _demand(self) -> float:
+        """The position demand (the profile), physical frame."""
         return self._profile.state_at(self._now)[0]
+
+    def _physical(self) -> float:
+        """The actual position, physical frame: the demand unless the axis is blocked."""
+        return self._blocked_at if self._blocked_at is not None else self._demand()
 
     def _record(self, kind: EventKind, detail: str, velocity: float) -> None:
         self.safety.record(self._now, kind, detail, velocity)
@@ -506,6 +559,10 @@ class Drive(Kinematics):
             raise SdoAbortedError(ABORT_RANGE)
         if kind == POWER_CYCLE_COMMAND:
             self.power_cycle()
+        elif kind == BLOCK_COMMAND:
+            self.block_axis()
+        elif kind == RELEASE_COMMAND:
+            self.release_axis()
         else:
             self.inject_fault(kind)
 
@@ -517,6 +574,7 @@ class Drive(Kinematics):
         self._target = None
         self._buffer = None
         self._last_target = None
+        self._settle_at = None
         if self._homing_status is HomingStatus.RUNNING:
             self._homing_status = HomingStatus.IDLE
         self._legs.clear()
@@ -533,6 +591,7 @@ class Drive(Kinematics):
         if cw & CW.CHANGE_SET_IMMEDIATELY or not busy:
             self._target, self._buffer = physical, None
             self._target_reached = False
+            self._settle_at = None
             self._plan()
         elif self._buffer is None:
             self._buffer = physical  # single set-point buffer: started when this move ends

@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING
 
 from ..cia402 import CW, T_FAULT_REACTION_DONE, T_QUICK_STOP_DONE, T_SELF_TEST_DONE, State
 from .homing import HomingStatus, Leg, VirtualSwitches, plan_homing
-from .motion import Kind, Profile, first_beyond, hold, plan_position, plan_stop, plan_velocity
+from .monitors import Monitors
+from .motion import Kind, Profile, hold, plan_position, plan_stop, plan_velocity
 from .objects import Mode
 from .od import ObjectStore
 from .safety import EventKind
@@ -39,7 +40,7 @@ from .units import Units
 __all__ = ["Kinematics"]
 
 
-class Kinematics:
+class Kinematics(Monitors):
     """The motion half of :class:`~epos_link.simulator.drive.Drive`."""
 
     # Set by Drive (its __init__ and _power_up).
@@ -84,9 +85,6 @@ class Kinematics:
 
         def _clamp_position(self, target: int) -> tuple[int, bool]: ...
 
-        def _software_limits(self) -> tuple[int, int] | None: ...
-
-        def _raise_fault(self, kind: str) -> None: ...
 
     # -- motion starts -----------------------------------------------------------------------
 
@@ -213,14 +211,14 @@ class Kinematics:
             self._profile = plan_stop(t, p, v, dec if slow_down_ramp else qs_dec)
         elif st is State.FAULT_REACTION_ACTIVE and self._powered_at_fault:
             self._profile = plan_stop(t, p, v, dec if self.store.get_int(0x605E) == 1 else qs_dec)
-        elif v != 0.0:  # power stage off: the axis coasts, the drive cannot brake it
+        elif v != 0.0 and self._blocked_at is None:  # power stage off: the axis coasts
             self._profile = plan_stop(t, p, v, u.acceleration_to_inc_s2(max(self.coast_deceleration, 1e-9)))
         else:
             self._profile = hold(t, p)
 
     def _run_until(self, t: float) -> None:
-        """Run the events due up to ``t`` in order: self-test end, a software
-        position limit passed, ends of ramps."""
+        """Run the events due up to ``t`` in order: self-test end, the monitors'
+        events (:mod:`~epos_link.simulator.monitors`), ends of ramps."""
         while True:
             if self._state is State.NOT_READY_TO_SWITCH_ON and self._self_test_until <= t:
                 self._now = max(self._now, self._self_test_until)
@@ -228,37 +226,16 @@ class Kinematics:
                 continue
             profile = self._profile
             ends = profile.kind in (Kind.POSITION, Kind.STOP) and profile.end_time <= t
-            crossing = self._limit_crossing(min(t, profile.end_time) if ends else t)
-            if crossing is not None:
-                self._now = max(self._now, crossing)
-                self._raise_fault("software_limit")
+            event = self._next_monitor_event(min(t, profile.end_time) if ends else t)
+            if event is not None:
+                self._now = max(self._now, event[0])
+                event[1]()
                 continue
             if ends:
                 self._now = max(self._now, profile.end_time)
                 self._profile_ended(profile)
                 continue
             return
-
-    def _limit_crossing(self, t: float) -> float | None:
-        """When, up to ``t``, a pv move passes a software position limit 607Dh.
-
-        The EPOS4 error table (Firmware Specification 7.2, as transcribed in
-        public EPOS4 code) lists 8A82h "Software position limit error" with the
-        fault reaction: a profile velocity move does not stop at 607Dh as a pp
-        target is clamped to it; it faults where it passes it. **Chosen**: the
-        check runs in pv in OPERATION ENABLED only (homing references the axis,
-        pp/csp targets are clamped), and an axis already beyond a limit faults
-        as soon as it moves further out.
-        """
-        if self._state is not State.OPERATION_ENABLED or self._mode is not Mode.PROFILE_VELOCITY:
-            return None
-        limits = self._software_limits()
-        if limits is None:
-            return None
-        lo, hi = (limit - self._offset for limit in limits)  # the counter's limits on the axis
-        times = [x for x in (first_beyond(self._profile, hi, 1, self._now, t),
-                             first_beyond(self._profile, lo, -1, self._now, t)) if x is not None]
-        return min(times) if times else None
 
     def _profile_ended(self, profile: Profile) -> None:
         self._profile = hold(profile.end_time, profile.final_position)
@@ -283,7 +260,7 @@ class Kinematics:
                 self._update_ack()
                 self._plan()
             else:
-                self._target_reached = True
+                self._arrived()  # target reached, at once or after the position window time
         elif st is State.QUICK_STOP_ACTIVE and self.store.get_int(0x605A) not in (5, 6, 7, 8):
             self._transition(*T_QUICK_STOP_DONE)
         elif st is State.FAULT_REACTION_ACTIVE:
