@@ -48,7 +48,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from ..cia402 import State
-from .motion import Profile, first_beyond
+from .motion import Profile, first_beyond, hold
 from .objects import Mode
 from .od import ObjectStore
 
@@ -77,6 +77,17 @@ class Monitors:
     _settle_at: float | None  # when the position window time is over
 
     if TYPE_CHECKING:  # provided by Drive
+        @property
+        def position(self) -> int: ...
+
+        def sync(self) -> None: ...
+
+        def _plan(self) -> None: ...
+
+        def _run_until(self, t: float) -> None: ...
+
+        def _powered(self) -> bool: ...
+
         def _physical(self) -> float: ...
 
         def _demand(self) -> float: ...
@@ -86,6 +97,32 @@ class Monitors:
         def _raise_fault(self, kind: str) -> None: ...
 
         def _track_goal(self, reason: str) -> None: ...
+
+    # -- the blocked axis ------------------------------------------------------------------
+
+    @property
+    def blocked(self) -> bool:
+        """Whether the axis is blocked (:meth:`block_axis`)."""
+        return self._blocked_at is not None
+
+    def block_axis(self) -> None:
+        """Jam the axis where it is now: 6064h stays, 6062h goes on (monitors.py, **chosen**)."""
+        self.sync()
+        if self._blocked_at is None:
+            self._blocked_at = self._physical()
+            self._plan()
+            self._run_until(self._now)
+
+    def release_axis(self) -> None:
+        """Free a blocked axis; the drive re-plans from where it stands, at rest."""
+        self.sync()
+        if self._blocked_at is not None:
+            self._profile = hold(self._now, self._blocked_at)
+            self._blocked_at = None
+            self._plan()
+            self._run_until(self._now)
+
+    # -- the run loop's question -------------------------------------------------------------
 
     def _next_monitor_event(self, horizon: float) -> Event | None:
         """The earliest monitor event in [now, horizon], with what it does."""
