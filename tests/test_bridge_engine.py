@@ -984,11 +984,20 @@ def test_epos4_velocities_are_rpm_and_accelerations_rpm_per_second() -> None:
 
 def test_epos4_velocity_prefix_from_60a9_is_honoured() -> None:
     engine, nodes = epos4(2048)
-    nodes[1].values[(0x60A9, 0)] = 0xFAB44700  # micro-rpm
+    nodes[1].values[(0x60A9, 0)] = 0xFDB44700  # milli-rpm
     ok(engine, "1S05=10")
-    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 292968750)]  # 292.96875 rpm in urpm
+    assert downloads(nodes[1], 0x6081) == [(0x6081, 0, 292969)]  # 292.96875 rpm in milli-rpm
     ok(engine, "1S06=100")  # 60AAh is fixed: accelerations stay rpm/s
     assert downloads(nodes[1], 0x6083) == [(0x6083, 0, 2930)]
+
+
+def test_a_prefix_below_milli_rpm_is_an_unknown_unit() -> None:
+    # maxon's velocity notation stops at milli-rpm (Definitions.h VN_MILLI = -3):
+    # 10^-4..10^-6 rpm are not scaled by a guess; velocity commands are refused.
+    engine, nodes = epos4(2048)
+    nodes[1].values[(0x60A9, 0)] = 0xFAB44700
+    assert ask(engine, "1S05=10").status is Status.NAK
+    assert downloads(nodes[1], 0x6081) == []
 
 
 def test_an_unknown_velocity_unit_refuses_velocity_commands_only(caplog: Any) -> None:
@@ -1024,9 +1033,9 @@ def test_a_velocity_unit_written_through_81_is_read_again() -> None:
     engine, nodes = epos4(2048)
     ok(engine, "1S05=10")
     ok(engine, "1S80=0x60A90004")
-    ok(engine, "1S81=0xFAB44700")
+    ok(engine, "1S81=0xFDB44700")
     ok(engine, "1S05=10")
-    assert downloads(nodes[1], 0x6081)[-1] == (0x6081, 0, 292968750)
+    assert downloads(nodes[1], 0x6081)[-1] == (0x6081, 0, 292969)
 
 
 class RoundingNode(FakeNode):

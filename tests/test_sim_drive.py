@@ -646,7 +646,7 @@ def test_fault_via_simulator_command_object() -> None:
     d.store.write(0x2100, 0, b"\x03\x00\x00\x00")
     assert d.state is State.FAULT and read(d, 0x603F) == 0x8611
     with pytest.raises(SdoAbortedError) as info:
-        d.store.write(0x2100, 0, b"\x07\x00\x00\x00")
+        d.store.write(0x2100, 0, b"\x09\x00\x00\x00")
     assert info.value.code == 0x06090030
 
 

@@ -91,9 +91,9 @@ def test_simulator_command_faults(value: int, code: int) -> None:
 
 
 def test_simulator_command_range() -> None:
-    assert sorted(SIMULATOR_COMMANDS) == [1, 2, 3, 4, 5, 6]
+    assert sorted(SIMULATOR_COMMANDS) == [1, 2, 3, 4, 5, 6, 7, 8]
     d = Drive(ObjectStore(OD))
-    for value in (0, 7):
+    for value in (0, 9):
         with pytest.raises(SdoAbortedError) as info:
             d.store.write(0x2100, 0, value.to_bytes(4, "little"))
         assert info.value.code == RANGE

@@ -85,8 +85,8 @@ def test_positive_limit_switch_method_18() -> None:
 @pytest.mark.parametrize(("method", "end"), [
     (17, -500.0), (18, 500.0),  # limit switch edges
     (1, -480.0), (2, 480.0),  # first index pulse back inside from the limit switch
-    (-1, 600.0), (-2, -600.0),  # end stops (current threshold)
-    (-3, 540.0), (-4, -540.0),  # end stop, then the index back inside
+    (-3, 600.0), (-4, -600.0),  # end stops (current threshold)
+    (-1, 540.0), (-2, -540.0),  # end stop, then the index back inside (maxon's "_AND_INDEX")
     (7, 180.0), (23, 200.0),  # home switch (positive side of 0) with / without index
     (33, -60.0), (34, 60.0),  # index only, at zero search speed
 ])
@@ -162,7 +162,7 @@ def test_a_falling_start_bit_interrupts_homing() -> None:
 @pytest.mark.parametrize("method,missing,stop", [
     (18, "positive_limit", 600), (17, "negative_limit", -600), (2, "positive_limit", 600),
     (7, "home_switch", 600), (23, "home_switch", 600), (11, "home_switch", -600),
-    (29, "home_switch", -600)])
+    (27, "home_switch", -600)])
 def test_a_switch_that_is_not_fitted_makes_homing_fail(method: int, missing: str,
                                                        stop: int) -> None:
     # The search runs on to the end stop, where the axis stops: "homing error
@@ -213,6 +213,31 @@ def test_unsupported_methods_are_refused() -> None:
         assert info.value.code == 0x06090030
 
 
+# maxon's EPOS Command Library, Definitions.h "Homing method" (HM_*), and 37.
+MAXON_METHODS = {35, 17, 1, 18, 2, 23, 7, 27, 11, -3, -1, -4, -2, 34, 33, 37}
+
+
+@pytest.mark.parametrize("method", [8, 9, 10, 12, 13, 14, 24, 25, 26, 28, 29, 30])
+def test_cia402_methods_maxon_does_not_list_are_refused(method: int) -> None:
+    d = Drive(ObjectStore(OD))
+    with pytest.raises(SdoAbortedError) as info:
+        write(d, 0x6098, method)
+    assert info.value.code == 0x06090030
+    assert d.store.get_int(0x6098) != method
+
+
+def test_exactly_maxons_methods_are_accepted() -> None:
+    d = Drive(ObjectStore(OD))
+    accepted = set()
+    for method in range(-128, 128):
+        try:
+            write(d, 0x6098, method)
+        except SdoAbortedError:
+            continue
+        accepted.add(method)
+    assert accepted == MAXON_METHODS == set(SUPPORTED_METHODS)
+
+
 def test_homing_in_default_units_travels_in_rpm() -> None:
     d = Drive(ObjectStore(OD))  # 2000 inc/rev: 100 rpm = 3333.3 inc/s
     write(d, 0x6098, 18)
@@ -246,7 +271,7 @@ def test_plan_homing_properties(method: int, position: float, ipr: int, v1: floa
     if method in WITH_INDEX:
         k = (found.target - sw.index_phase) / ipr
         assert k == pytest.approx(round(k), abs=1e-6) and found.speed == v2
-    elif method in (17, 18, -1, -2) or method >= 23:
-        expected = {17: sw.negative_limit, 18: sw.positive_limit, -1: sw.positive_stop,
-                    -2: sw.negative_stop}.get(method, sw.home_switch)
+    elif method in (17, 18, -3, -4) or method >= 23:
+        expected = {17: sw.negative_limit, 18: sw.positive_limit, -3: sw.positive_stop,
+                    -4: sw.negative_stop}.get(method, sw.home_switch)
         assert found.target == expected

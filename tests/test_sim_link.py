@@ -133,3 +133,63 @@ def test_a_paced_pty_link_serves_with_a_1_us_timer_slack_and_a_short_spin() -> N
     finally:
         link.close()
         sim.close()
+
+
+class TimedReads:
+    """Host reads on the fake clock: each step is (seconds of silence, bytes)."""
+
+    def __init__(self, fake: FakeTime, steps: list[tuple[float, bytes]]) -> None:
+        self.fake, self.steps = fake, steps
+
+    def __call__(self, timeout: float) -> Optional[bytes]:
+        if not self.steps:
+            return None
+        wait, data = self.steps[0]
+        if wait > timeout:  # nothing within this read: the time passes, empty read
+            self.steps[0] = (wait - timeout, data)
+            self.fake.now += timeout
+            return b""
+        self.steps.pop(0)
+        self.fake.now += wait
+        return data
+
+
+def resets_while_serving(frame_timeout_ms: Optional[int], silence: float, *,
+                         usb: bool = False) -> int:
+    """Serve a simulated EPOS4 a partial frame, then ``silence`` s; count frame-timeout resets."""
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.link import RS232_FRAME_TIMEOUT, USB_FRAME_TIMEOUT
+
+    index = USB_FRAME_TIMEOUT if usb else RS232_FRAME_TIMEOUT
+    fake = FakeTime()
+    with Epos4Simulator(1, []) as sim:
+        if frame_timeout_ms is not None:
+            sim.own.store.write_value(index, 0, frame_timeout_ms)
+        resets: list[float] = []
+        reset = sim.reset
+
+        def counting_reset() -> None:
+            resets.append(fake.now)
+            reset()
+        sim.reset = counting_reset  # type: ignore[method-assign]
+        server = LinkServer(sim, LinkOptions(), clock=fake.clock, sleep=fake.sleep, spin=0.0,
+                            frame_timeout_object=index)
+        server.serve_stream(TimedReads(fake, [(0.0, b"\x90\x02\x60"), (silence, b"")]),
+                            lambda data: None)
+        return len(resets) - 1  # the first reset is the link's start
+
+
+def test_the_frame_timeout_is_2005h_default_500_ms() -> None:
+    # Guide 2.2.7, Table 2-4: RS232 Frame Timeout 2005h, default 500 ms.
+    assert resets_while_serving(None, 0.4) == 0
+    assert resets_while_serving(None, 0.6) == 1
+
+
+def test_a_written_2005h_sets_the_frame_timeout() -> None:
+    # "the timeout may be changed by writing to the Object Dictionary" (guide 2.2.7).
+    assert resets_while_serving(100, 0.15) == 1  # 100 ms: the partial frame is gone
+    assert resets_while_serving(1000, 0.7) == 0  # 1 s: still waiting for its rest
+
+
+def test_the_usb_link_uses_2006h() -> None:
+    assert resets_while_serving(100, 0.15, usb=True) == 1

@@ -113,6 +113,7 @@ def test_velocity_unit_prefixes(prefix: int, exponent: int) -> None:
 
 @pytest.mark.parametrize("value", [
     0x01B44700, 0xF9B44700, 0x80B44700,  # prefixes the EPOS4 does not take
+    0xFCB44700, 0xFBB44700, 0xFAB44700,  # below milli-rpm: not in maxon's velocity notation
     0x00B44800, 0x00B54700, 0x00000000, 0xFAB44701,  # not rpm
 ])
 def test_velocity_unit_refuses_what_the_epos4_refuses(value: int) -> None:
@@ -123,17 +124,22 @@ def test_velocity_unit_refuses_what_the_epos4_refuses(value: int) -> None:
     assert read(d, 0x60A9) == 0x00B44700
 
 
-def test_micro_rpm_reinterprets_stored_velocities() -> None:
+def test_velocity_notation_is_maxons() -> None:
+    # EPOS Command Library Definitions.h: VN_STANDARD 0, VN_DECI -1, VN_CENTI -2, VN_MILLI -3.
+    assert dict(VELOCITY_PREFIXES) == {0x00: 0, 0xFF: -1, 0xFE: -2, 0xFD: -3}
+
+
+def test_milli_rpm_reinterprets_stored_velocities() -> None:
     """Chosen (units.py): 60A9h does not rescale the velocity objects."""
     d = enabled()
-    write(d, 0x60A9, 0xFAB44700)
+    write(d, 0x60A9, 0xFDB44700)
     assert d.velocity_increments == 0.0
-    write(d, 0x6081, 1_000_000)  # 1 rpm; 607Fh/6080h = 50000 now mean 0.05 rpm
+    write(d, 0x6081, 1_000)  # 1 rpm; 607Fh/6080h = 50000 now mean 50 rpm
     for limit in (0x607F, 0x6080):
-        write(d, limit, 4_000_000_000)
+        write(d, limit, 4_000_000)
     start_move(d, 100)
     d.advance(1.0)
-    assert d.velocity_increments == pytest.approx(2000 / 60) and read(d, 0x606C) == 1_000_000
+    assert d.velocity_increments == pytest.approx(2000 / 60) and read(d, 0x606C) == 1_000
 
 
 def test_max_motor_speed_limits_profile_velocity() -> None:

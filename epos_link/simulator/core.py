@@ -261,6 +261,10 @@ class Epos4Simulator:
         with self._lock:
             self.device.reset()
 
+    def frame_timeout(self, index: int) -> float:
+        """Guide 2.2.7: 2005h (RS232) / 2006h (USB) frame timeout, ms in the dictionary, in s."""
+        return self.own.store.get_int(index) / 1000.0
+
     # -- ObjectAccess for the device protocol ---------------------------------------------
 
     def _is_local(self, node: int) -> bool:

@@ -33,6 +33,10 @@ What is modelled (CiA 402-2 V4.0 sections in brackets), in EPOS4 units
 * trapezoidal profiles in closed form (:mod:`~epos_link.simulator.motion`),
   velocity 6081h <= 607Fh, 6080h, accelerations 6083h/6084h/6085h <= 60C5h,
   planned in :mod:`~epos_link.simulator.kinematics` (which ramp for which state);
+* the monitors (:mod:`~epos_link.simulator.monitors`): 8A82h where a pv move
+  passes 607Dh, the following error 8611h from 6065h/6066h, the position
+  window 6067h/6068h for target reached; a blocked axis
+  (:meth:`Drive.block_axis`) makes 6062h and 6064h differ;
 * what matters for safety, in :attr:`Drive.safety`
   (:mod:`~epos_link.simulator.safety`): motion starts, power stage switched
   off while moving, resets while moving.
@@ -55,15 +59,8 @@ Decisions a client may notice (**chosen** where the manuals are silent):
 * While a 605Bh/605Ch ramp runs, new set-points are ignored, enable
   operation is ignored, and shutdown, disable voltage or quick stop replace
   the pending transition.
-* 607Dh software limits clamp a pp or csp target (CiA 402-2 6.5.2; for csp
-  as Nanotec N5 describes it, bit 11 "demand position above or below the
-  limit values set in 607Dh") and set sw bit 11 until the next unclamped
-  set-point; min >= max switches them off. Profile
-  velocity clamped by 607Fh/6080h also sets bit 11 (EPOS4: bit 11 "internal
-  limit active" includes velocity limiting). Limit switch inputs are in 60FDh.
-* A relative target (cw bit 6) is relative to the preceding target; after
-  power-up, homing, a mode change or an interrupted move it is relative to
-  the position demand value.
+* Set-points, 607Dh clamps and relative targets: see
+  :mod:`~epos_link.simulator.setpoints`.
 * Releasing halt resumes the pp move to the pending target, and a pv move to
   60FFh: both count as motion starts.
 * Statusword bit 4 (voltage enabled) is 1 while the power stage is on. Bit 9
@@ -75,7 +72,6 @@ Decisions a client may notice (**chosen** where the manuals are silent):
 """
 from __future__ import annotations
 
-import math
 from collections import deque
 from collections.abc import Callable
 
@@ -84,8 +80,6 @@ from canopen import SdoAbortedError
 from ..cia402 import (
     CW,
     POWERED_STATES,
-    STATE_BITS,
-    SW,
     T_FAULT,
     T_FAULT_REACTION_DONE,
     T_INITIALISED,
@@ -96,28 +90,31 @@ from ..cia402 import (
     decode_command,
 )
 from .clock import VirtualClock
-from .faults import FAULTS, POWER_CYCLE_COMMAND, SIMULATOR_COMMANDS, FaultSpec, Reaction, push_history
-from .objects import Mode, install_object_rules
+from .faults import (
+    BLOCK_COMMAND,
+    FAULTS,
+    POWER_CYCLE_COMMAND,
+    RELEASE_COMMAND,
+    SIMULATOR_COMMANDS,
+    FaultSpec,
+    Reaction,
+    push_history,
+)
 from .homing import HomingStatus, Leg, VirtualSwitches
 from .kinematics import Kinematics
 from .motion import Profile, hold
+from .objects import Mode, install_object_rules
+from .observation import Observation
 from .od import ABORT_RANGE, ObjectStore, Value, load_object_dictionary
-from .safety import DriveEvent, EventKind, SafetyLog
-from .units import Units, units_of
+from .safety import EventKind, SafetyLog
+from .setpoints import SetPoints
 
 __all__ = ["FAULTS", "Drive", "FaultSpec", "Mode", "SIMULATOR_COMMANDS", "VirtualClock"]
 
-_I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
 _RAMPED_DISABLE = {5: 0x605C, 8: 0x605B}  # transition -> its option code object
 
 
-def _wrap_i32(value: float) -> int:
-    """Round to the nearest integer and wrap into INTEGER32 like an encoder counter."""
-    n = math.floor(value + 0.5)
-    return (n - _I32_MIN) % (1 << 32) + _I32_MIN
-
-
-class Drive(Kinematics):
+class Drive(Observation, SetPoints, Kinematics):
     """The CiA 402 drive: state machine, modes and motion, served through ``store``.
 
     ``store`` defaults to a fresh store over the shipped EDS (node 1). With
@@ -146,6 +143,8 @@ class Drive(Kinematics):
         self.history: deque[tuple[float, int, State]] = deque(maxlen=256)
         self._self_test_time = float(self_test_time)
         self._profile: Profile = hold(0.0, 0.0)
+        self._in_event = False  # the run loop is raising a fault at an earlier instant
+        self._blocked_at: float | None = None  # a blocked axis stands here (monitors.py)
         install_object_rules(self.store, self)
         self._power_up(start if start is not None else (clock() if clock is not None else 0.0))
         if clock is not None:
@@ -175,8 +174,12 @@ class Drive(Kinematics):
         self.update(self._now + dt)
 
     def sync(self) -> None:
-        """Catch up with the clock, if there is one (the store's ``before_access``)."""
-        if self.clock is not None:
+        """Catch up with the clock, if there is one (the store's ``before_access``).
+
+        Not while an event of the run loop is being handled: that event happens
+        at its own instant, before the clock's.
+        """
+        if self.clock is not None and not self._in_event:
             self.update(self.clock())
 
     # -- resets ------------------------------------------------------------------------
@@ -202,123 +205,6 @@ class Drive(Kinematics):
         self._power_up(self._now)
         if self.on_power_up is not None:
             self.on_power_up(kind.value)
-
-    # -- observation -----------------------------------------------------------------
-
-    @property
-    def state(self) -> State:
-        return self._state
-
-    @property
-    def mode(self) -> Mode:
-        return self._mode
-
-    @property
-    def controlword(self) -> int:
-        return self._cw
-
-    @property
-    def units(self) -> Units:
-        return units_of(self.store)
-
-    @property
-    def increments_per_revolution(self) -> int:
-        """Main sensor increments per motor revolution (3000h:05 = 4 x 3010h:01)."""
-        return self.units.increments_per_revolution
-
-    @property
-    def position(self) -> int:
-        """6064h (and 6062h: the demand equals the actual value in this model)."""
-        return _wrap_i32(self._physical() + self._offset)
-
-    @property
-    def axis_position(self) -> float:
-        """Where the axis physically is, in increments from where it was at the first power-up.
-
-        Unlike 6064h it is not moved by homing or power cycles: tests use it
-        to see whether the axis really moved.
-        """
-        return self._physical()
-
-    @property
-    def velocity(self) -> int:
-        """606Ch, in the unit of 60A9h (rpm by default)."""
-        return int(math.floor(self.units.velocity_from_inc_s(self.velocity_increments) + 0.5))
-
-    @property
-    def velocity_increments(self) -> float:
-        """The axis velocity in increments per second."""
-        return self._profile.state_at(self._now)[1]
-
-    @property
-    def homing_status(self) -> HomingStatus:
-        return self._homing_status
-
-    @property
-    def events(self) -> deque[DriveEvent]:
-        return self.safety.events
-
-    @property
-    def motion_starts(self) -> int:
-        return self.safety.motion_starts
-
-    @property
-    def unsafe_stops(self) -> deque[DriveEvent]:
-        return self.safety.unsafe_stops
-
-    @property
-    def resets_while_moving(self) -> int:
-        return self.safety.resets_while_moving
-
-    @property
-    def statusword(self) -> int:
-        """6041h, CiA 402-2 6.4.1.4 and the mode-specific bits of 6.6/6.7/6.9."""
-        st = self._state
-        sw = STATE_BITS[st]
-        if self._powered():
-            sw |= SW.VOLTAGE_ENABLED
-        if self.warning:
-            sw |= SW.WARNING
-        if self.remote:
-            sw |= SW.REMOTE
-        velocity = self.velocity_increments
-        at_rest = velocity == 0.0
-        halted = st is State.OPERATION_ENABLED and bool(self._cw & CW.HALT)
-        bit12 = bit13 = False
-        if st is State.QUICK_STOP_ACTIVE or self._pending is not None:
-            reached = at_rest  # "quick stop finished, drive halted" (6.4.1.4, bit 10)
-        elif self._mode is Mode.PROFILE_POSITION:
-            reached = (halted and at_rest) or self._target_reached
-        elif self._mode is Mode.PROFILE_VELOCITY:
-            reached = velocity == self._velocity_goal()[0]
-        else:
-            reached = False
-        if self._mode is Mode.PROFILE_POSITION:
-            bit12, bit13 = self._ack, self._following_error
-        elif self._mode is Mode.PROFILE_VELOCITY:
-            bit12 = at_rest
-        elif self._mode is Mode.CYCLIC_SYNC_POSITION:
-            # csp: bit 10 reserved, 12 "drive follows the command value" (607Ah is
-            # the input of the position loop), 13 following error.
-            bit12 = st is State.OPERATION_ENABLED and self._pending is None
-            bit13 = self._following_error
-        else:  # homing, CiA 402-2 6.6 table: bits 13/12/10
-            status = self._homing_status
-            bit13 = status is HomingStatus.ERROR
-            bit12 = status is HomingStatus.DONE
-            if status is not HomingStatus.RUNNING and st is not State.QUICK_STOP_ACTIVE:
-                reached = status is HomingStatus.DONE or at_rest
-        if reached:
-            sw |= SW.TARGET_REACHED
-        if self._clamped or (self._fault is not None and self._fault.internal_limit):
-            sw |= SW.INTERNAL_LIMIT_ACTIVE
-        if bit12:
-            sw |= SW.OP_MODE_12
-        if bit13:
-            sw |= SW.OP_MODE_13
-        if self._homed:
-            sw |= SW.POSITION_REFERENCED
-        return int(sw)
 
     # -- commands ----------------------------------------------------------------------
 
@@ -376,6 +262,8 @@ class Drive(Kinematics):
         self._homing_status = HomingStatus.IDLE
         self._legs: deque[Leg] = deque()
         self._following_error = False
+        self._error_since: float | None = None  # following error above 6065h since (monitors.py)
+        self._settle_at: float | None = None  # end of the 6068h position window time
         self._fault: FaultSpec | None = None
         self._powered_at_fault = False
         self._pending: tuple[int, State] | None = None  # transition waiting for a ramp
@@ -389,8 +277,13 @@ class Drive(Kinematics):
         self._plan()
         self._run_until(self._now)
 
-    def _physical(self) -> float:
+    def _demand(self) -> float:
+        """The position demand (the profile), physical frame."""
         return self._profile.state_at(self._now)[0]
+
+    def _physical(self) -> float:
+        """The actual position, physical frame: the demand unless the axis is blocked."""
+        return self._blocked_at if self._blocked_at is not None else self._demand()
 
     def _record(self, kind: EventKind, detail: str, velocity: float) -> None:
         self.safety.record(self._now, kind, detail, velocity)
@@ -477,21 +370,6 @@ class Drive(Kinematics):
             self._track_goal("mode change")
             self._run_until(self._now)
 
-    def on_target_position(self, value: Value) -> None:
-        """607Ah: a set-point for pp at the next cw bit 4; in csp, followed at once."""
-        self.store.set(0x607A, 0, value)
-        if self._mode is Mode.CYCLIC_SYNC_POSITION and self._state is State.OPERATION_ENABLED \
-                and self._pending is None:
-            self._plan()
-            self._track_goal("target position (csp)")
-            self._run_until(self._now)
-
-    def on_target_velocity(self, value: Value) -> None:
-        self.store.set(0x60FF, 0, value)
-        if self._mode is Mode.PROFILE_VELOCITY and self._state is State.OPERATION_ENABLED:
-            self._plan()
-            self._track_goal("target velocity")
-
     def on_units_changed(self) -> None:
         """60A9h or the encoder changed: the running profile is re-planned in the new units."""
         if self._state is State.OPERATION_ENABLED:
@@ -503,6 +381,10 @@ class Drive(Kinematics):
             raise SdoAbortedError(ABORT_RANGE)
         if kind == POWER_CYCLE_COMMAND:
             self.power_cycle()
+        elif kind == BLOCK_COMMAND:
+            self.block_axis()
+        elif kind == RELEASE_COMMAND:
+            self.release_axis()
         else:
             self.inject_fault(kind)
 
@@ -530,41 +412,15 @@ class Drive(Kinematics):
         self._target = None
         self._buffer = None
         self._last_target = None
+        self._settle_at = None
         if self._homing_status is HomingStatus.RUNNING:
             self._homing_status = HomingStatus.IDLE
         self._legs.clear()
 
-    def _accept_set_point(self, cw: int) -> None:
-        """Profile position set-point on a rising edge of cw bit 4 (CiA 402-2 6.7.1)."""
-        target = self.store.get_int(0x607A)
-        if cw & CW.ABS_REL:
-            base = self._last_target if self._last_target is not None else self.position
-            target += base
-        target, clamped = self._clamp_position(target)
-        physical = target - self._offset
-        busy = self._target is not None and not self._target_reached
-        if cw & CW.CHANGE_SET_IMMEDIATELY or not busy:
-            self._target, self._buffer = physical, None
-            self._target_reached = False
-            self._plan()
-        elif self._buffer is None:
-            self._buffer = physical  # single set-point buffer: started when this move ends
-        else:
-            return  # buffer full: set-point not accepted, no acknowledge
-        self._last_target = target
-        self._clamped = clamped
-        self._ack = True
-        self._record(EventKind.MOTION_START, f"set-point {target}", self.velocity_increments)
-        self._goal = self._moving_goal()
-
-    def _update_ack(self) -> None:
-        # Set-point acknowledge drops once the master clears bit 4 and the buffer is free.
-        if not self._cw & CW.NEW_SET_POINT and self._buffer is None:
-            self._ack = False
-
-    def _clamp_position(self, target: int) -> tuple[int, bool]:
-        lo, hi = self.store.get_int(0x607D, 1), self.store.get_int(0x607D, 2)
-        if lo >= hi:
-            lo, hi = _I32_MIN, _I32_MAX  # limits switched off
-        clamped = min(max(target, max(lo, _I32_MIN)), min(hi, _I32_MAX))
-        return clamped, clamped != target
+    def _raise_fault(self, kind: str) -> None:
+        """A fault the model itself detects, at ``self._now`` (not the clock's time)."""
+        self._in_event = True
+        try:
+            self.inject_fault(kind)
+        finally:
+            self._in_event = False

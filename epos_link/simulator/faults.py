@@ -36,7 +36,8 @@ from typing import Mapping, Protocol
 from ..codes import describe_device_error
 
 __all__ = [
-    "FAULTS", "FaultSpec", "HISTORY_DEPTH", "POWER_CYCLE_COMMAND", "Reaction",
+    "BLOCK_COMMAND", "FAULTS", "FaultSpec", "HISTORY_DEPTH", "POWER_CYCLE_COMMAND", "RELEASE_COMMAND",
+    "Reaction",
     "SIMULATOR_COMMANDS", "clear_history", "push_history",
 ]
 
@@ -84,12 +85,15 @@ FAULTS: Mapping[str, FaultSpec] = MappingProxyType({
 })
 
 POWER_CYCLE_COMMAND = "power_cycle"
+BLOCK_COMMAND = "block_axis"  # the load jams: 6064h stops, 6062h goes on (monitors.py)
+RELEASE_COMMAND = "release_axis"
 
 # Values of the write-only 2100h "Simulator command" (see epos4.eds). 1..3 keep
-# their old meaning; 6 is not a fault but a power loss and return.
+# their old meaning; 6 is not a fault but a power loss and return; 7/8 block and
+# release the axis.
 SIMULATOR_COMMANDS: Mapping[int, str] = MappingProxyType({
     1: "limit_positive", 2: "limit_negative", 3: "following_error",
-    4: "software_limit", 5: "sto", 6: POWER_CYCLE_COMMAND,
+    4: "software_limit", 5: "sto", 6: POWER_CYCLE_COMMAND, 7: BLOCK_COMMAND, 8: RELEASE_COMMAND,
 })
 
 

@@ -23,19 +23,24 @@ Specification 6.2.66/6.2.67, as quoted by public drivers: "the position that
 will be set as zero position", "a moving distance in a homing procedure").
 That the counter is set *after* the offset move is **chosen**.
 
-Methods (6098h): -1/-2 current threshold positive/negative (the end stop
-stands in for 30B2h "current threshold for homing mode"), -3/-4 the same
-with index, 1/2 negative/positive limit switch and index, 17/18 the same
-without index, 7..14 home switch and index, 23..30 home switch without
-index, 33/34 index negative/positive, 35 and 37 actual position (no motion,
-complete at once). Simplification, **chosen**: the home switch methods
+Methods (6098h): exactly the sixteen maxon defines. maxon's EPOS Command
+Library (Definitions.h, "Homing method" HM_* constants, as shipped with
+public EPOS drivers) names 35 actual position, 17/18 negative/positive limit
+switch, 1/2 the same and index, 23/27 home switch positive/negative speed,
+7/11 the same and index, -3/-4 current threshold positive/negative speed,
+-1/-2 the same and index, 34/33 index positive/negative speed; the EPOS4
+adds 37 (actual position, CiA 402-2 V4). Any other value (the CiA 402-2
+variants 3..6, 8..10, 12..14, 19..22, 24..26, 28..32) is refused with
+06090030h like any value outside an object's range. The end stop stands in
+for 30B2h "current threshold for homing mode" (-1..-4); 35 and 37 complete at
+once without motion. Simplification, **chosen**: the home switch methods
 approach the switch from the side the axis is on and search the index (or
-edge) backwards; the variants within 7..14 and 23..30 do not differ here.
+edge) backwards.
 
 A homing that fails: a limit or home switch set to ``None`` is not fitted.
 The search for it then runs on to the end stop in its direction (for the
-home switch methods the direction CiA 402-2 6.6 draws first: positive for
-7..10 and 23..26, negative for 11..14 and 27..30), where the axis stops and
+home switch methods the direction in the name: positive for 7 and 23,
+negative for 11 and 27), where the axis stops and
 the homing ends in error: statusword bit 13 "homing error", bit 10 = 1 once
 the velocity is 0 (CiA 402-2 6.6, table of bits 13/12/10: 1 0 1 "homing
 error occurred, velocity is 0"). **Chosen**: the drive raises no fault and
@@ -50,13 +55,16 @@ from enum import Enum
 
 __all__ = ["HomingStatus", "Leg", "SUPPORTED_METHODS", "VirtualSwitches", "plan_homing"]
 
+# maxon Definitions.h HM_*: CURRENT_THRESHOLD_POSITIVE_SPEED(_AND_INDEX) = -3 (-1),
+# NEGATIVE -4 (-2); LIMIT_SWITCH 17/18, _AND_INDEX 1/2; HOME_SWITCH_POSITIVE_SPEED
+# 23 (_AND_INDEX 7), NEGATIVE 27 (11); INDEX_POSITIVE/NEGATIVE_SPEED 34/33; 35.
 CURRENT_THRESHOLD = frozenset({-1, -2, -3, -4})
 LIMIT_SWITCH = frozenset({1, 2, 17, 18})
-HOME_SWITCH = frozenset(range(7, 15)) | frozenset(range(23, 31))
+HOME_SWITCH = frozenset({7, 11, 23, 27})
 INDEX_ONLY = frozenset({33, 34})
 ACTUAL_POSITION = frozenset({35, 37})
 SUPPORTED_METHODS = CURRENT_THRESHOLD | LIMIT_SWITCH | HOME_SWITCH | INDEX_ONLY | ACTUAL_POSITION
-WITH_INDEX = frozenset({-3, -4, 1, 2}) | frozenset(range(7, 15)) | INDEX_ONLY
+WITH_INDEX = frozenset({-1, -2, 1, 2, 7, 11}) | INDEX_ONLY
 
 
 class HomingStatus(Enum):
@@ -149,7 +157,7 @@ def _switch_of(method: int, position: float,
         positive = method in (2, 18)
         return (1, sw.positive_limit, False) if positive else (-1, sw.negative_limit, False)
     if sw.home_switch is None:
-        # CiA 402-2 6.6: methods 7..10 and 23..26 start positive, 11..14 and 27..30 negative.
-        return (1 if method in (7, 8, 9, 10, 23, 24, 25, 26) else -1), None, False
+        # "positive speed" (7, 23) / "negative speed" (11, 27): the first search direction.
+        return (1 if method in (7, 23) else -1), None, False
     direction = 1 if sw.home_switch >= position else -1
     return direction, sw.home_switch, False

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 from ..cia402 import CW, T_FAULT_REACTION_DONE, T_QUICK_STOP_DONE, T_SELF_TEST_DONE, State
 from .homing import HomingStatus, Leg, VirtualSwitches, plan_homing
+from .monitors import Monitors
 from .motion import Kind, Profile, hold, plan_position, plan_stop, plan_velocity
 from .objects import Mode
 from .od import ObjectStore
@@ -39,7 +40,7 @@ from .units import Units
 __all__ = ["Kinematics"]
 
 
-class Kinematics:
+class Kinematics(Monitors):
     """The motion half of :class:`~epos_link.simulator.drive.Drive`."""
 
     # Set by Drive (its __init__ and _power_up).
@@ -83,6 +84,7 @@ class Kinematics:
         def _update_ack(self) -> None: ...
 
         def _clamp_position(self, target: int) -> tuple[int, bool]: ...
+
 
     # -- motion starts -----------------------------------------------------------------------
 
@@ -209,20 +211,27 @@ class Kinematics:
             self._profile = plan_stop(t, p, v, dec if slow_down_ramp else qs_dec)
         elif st is State.FAULT_REACTION_ACTIVE and self._powered_at_fault:
             self._profile = plan_stop(t, p, v, dec if self.store.get_int(0x605E) == 1 else qs_dec)
-        elif v != 0.0:  # power stage off: the axis coasts, the drive cannot brake it
+        elif v != 0.0 and self._blocked_at is None:  # power stage off: the axis coasts
             self._profile = plan_stop(t, p, v, u.acceleration_to_inc_s2(max(self.coast_deceleration, 1e-9)))
         else:
             self._profile = hold(t, p)
 
     def _run_until(self, t: float) -> None:
-        """Run the events due up to ``t`` in order: self-test end, ends of ramps."""
+        """Run the events due up to ``t`` in order: self-test end, the monitors'
+        events (:mod:`~epos_link.simulator.monitors`), ends of ramps."""
         while True:
             if self._state is State.NOT_READY_TO_SWITCH_ON and self._self_test_until <= t:
                 self._now = max(self._now, self._self_test_until)
                 self._transition(*T_SELF_TEST_DONE)
                 continue
             profile = self._profile
-            if profile.kind in (Kind.POSITION, Kind.STOP) and profile.end_time <= t:
+            ends = profile.kind in (Kind.POSITION, Kind.STOP) and profile.end_time <= t
+            event = self._next_monitor_event(min(t, profile.end_time) if ends else t)
+            if event is not None:
+                self._now = max(self._now, event[0])
+                event[1]()
+                continue
+            if ends:
                 self._now = max(self._now, profile.end_time)
                 self._profile_ended(profile)
                 continue
@@ -251,7 +260,7 @@ class Kinematics:
                 self._update_ack()
                 self._plan()
             else:
-                self._target_reached = True
+                self._arrived()  # target reached, at once or after the position window time
         elif st is State.QUICK_STOP_ACTIVE and self.store.get_int(0x605A) not in (5, 6, 7, 8):
             self._transition(*T_QUICK_STOP_DONE)
         elif st is State.FAULT_REACTION_ACTIVE:

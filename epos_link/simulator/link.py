@@ -21,6 +21,15 @@ the 2-core development VM: 200 us sleeps overshot by 65 us median, 121 us p99
 with the default slack; 8 us and 20 us with 1 us. That spin was most of the
 simulator's CPU time per request, taken from the host it serves.
 The clock, the sleep and that spin are injectable for tests.
+
+Frame timeout (guide 2.2.7, Table 2-4): a partial frame is dropped once no
+byte has come for the frame timeout, "RS232 Frame Timeout" 2005h or "USB
+Frame Timeout" 2006h, UNSIGNED16 in ms, default 500, and "may be changed by
+writing to the Object Dictionary". The link asks the device for the value
+of its interface's object at each check (:meth:`Device.frame_timeout`), so
+a write takes effect at once; a device without that method, or
+``LinkOptions.frame_timeout`` set, gets the fixed value. **Chosen**: 0 ms
+is taken literally (any pause drops a partial frame).
 """
 from __future__ import annotations
 
@@ -60,10 +69,24 @@ def precise_timers() -> bool:
         return False
 
 
+RS232_FRAME_TIMEOUT = 0x2005  # guide 2.2.7, Table 2-4: ms, default 500
+USB_FRAME_TIMEOUT = 0x2006
+DEFAULT_FRAME_TIMEOUT = 0.5  # s, the guide's default for both
+POLL = 0.05  # s, longest wait for host bytes before the frame timeout is checked
+
+
 class Device(Protocol):
     def receive(self, data: bytes) -> list[bytes]: ...
 
     def reset(self) -> None: ...
+
+
+def device_frame_timeout(device: object, index: int) -> float:
+    """The device's frame timeout in seconds from ``index`` (2005h/2006h), if it has one."""
+    ask = getattr(device, "frame_timeout", None)
+    if ask is None:
+        return DEFAULT_FRAME_TIMEOUT
+    return float(ask(index))
 
 
 @dataclass
@@ -76,7 +99,7 @@ class LinkOptions:
     delay: float = 0.0              # seconds before each reply
     silent: bool = False            # read requests, never answer
     disconnect_after: Optional[int] = None  # close the link after N replies
-    frame_timeout: float = 0.5      # guide 2.2.7: 0x2005/0x2006 default 500 ms
+    frame_timeout: Optional[float] = None  # s; None: the device's 2005h/2006h (guide 2.2.7)
     seed: Optional[int] = None
 
     def __post_init__(self) -> None:
@@ -88,6 +111,9 @@ class LinkOptions:
             raise ValueError("baud must be positive")
         if not math.isfinite(self.delay) or self.delay < 0:
             raise ValueError("delay must be a finite, non-negative number of seconds")
+        ft = self.frame_timeout
+        if ft is not None and (not math.isfinite(ft) or ft < 0):
+            raise ValueError("frame_timeout must be a finite, non-negative number of seconds")
 
 
 class FaultInjector:
@@ -122,9 +148,11 @@ class LinkServer:
     def __init__(self, device: Device, options: Optional[LinkOptions] = None,
                  trace: Optional[CaptureWriter] = None, *,
                  clock: Callable[[], float] = time.perf_counter,
-                 sleep: Callable[[float], None] = time.sleep, spin: float = SPIN) -> None:
+                 sleep: Callable[[float], None] = time.sleep, spin: float = SPIN,
+                 frame_timeout_object: int = RS232_FRAME_TIMEOUT) -> None:
         self.device = device
         self.options = options or LinkOptions()
+        self.frame_timeout_object = frame_timeout_object  # 2005h (serial) or 2006h (USB)
         self._clock = clock
         self._sleep = sleep
         self.spin = spin  # seconds waited on the clock before an answer's last byte
@@ -147,6 +175,13 @@ class LinkServer:
 
     def stop(self) -> None:
         self._stop.set()
+
+    def frame_timeout(self) -> float:
+        """Seconds of silence after which a partial frame is dropped (guide 2.2.7)."""
+        fixed = self.options.frame_timeout
+        if fixed is not None:
+            return fixed
+        return device_frame_timeout(self.device, self.frame_timeout_object)
 
     @property
     def stopped(self) -> bool:
@@ -198,15 +233,16 @@ class LinkServer:
                      write: Callable[[bytes], None]) -> None:
         """Serve until stopped, the peer closes (read returns None) or a disconnect fault."""
         opts = self.options
-        last_rx = time.monotonic()
+        last_rx = self._clock()
         self.device.reset()
         while not self._stop.is_set():
-            data = read(0.05)
-            now = time.monotonic()
+            timeout = self.frame_timeout()
+            data = read(min(POLL, max(timeout, 0.001)))
+            now = self._clock()
             if data is None:
                 return
             if not data:
-                if now - last_rx > opts.frame_timeout:
+                if now - last_rx > timeout:
                     self.device.reset()  # a partial frame older than the frame timeout
                     last_rx = now
                 continue

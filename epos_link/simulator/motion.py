@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-__all__ = ["Kind", "Profile", "Segment", "hold", "plan_position", "plan_stop", "plan_velocity"]
+__all__ = ["Kind", "Profile", "Segment", "first_beyond", "hold", "plan_position", "plan_stop", "plan_velocity"]
 
 
 class Kind(Enum):
@@ -186,3 +186,52 @@ def plan_position(t: float, position: float, velocity: float, target: float,
                 b.ramp(-s * dec, peak / dec)
     # Rest exactly on the target; the ramps above end within rounding of it.
     return b.finish(Kind.POSITION, float(target), 0.0, float(target))
+
+
+def first_beyond(profile: Profile, level: float, direction: int, t0: float, t1: float) -> float | None:
+    """The first time in [t0, t1] at which the axis is at or beyond ``level`` on the
+    ``direction`` side (+1: above, -1: below) while moving further that way; None if never.
+
+    Exact, per constant-acceleration piece: the roots of ``p(t) = level`` and the
+    instant the velocity turns outwards, whichever comes first.
+    """
+    s = 1.0 if direction > 0 else -1.0
+    pieces = [(seg.start, seg.end, seg.position, seg.velocity, seg.acceleration)
+              for seg in profile.segments]
+    pieces.append((profile.end_time, math.inf, profile.final_position, profile.final_velocity, 0.0))
+    for start, end, p, v, a in pieces:
+        lo, hi = max(t0, start), min(t1, end)
+        if lo > hi:
+            continue
+        # Normalised: q = s * (position - level) >= 0 beyond the level, u = outward speed.
+        dt0 = lo - start
+        q0 = s * (p + v * dt0 + 0.5 * a * dt0 * dt0 - level)
+        u0, b = s * (v + a * dt0), s * a
+        found = _first_outward(q0, u0, b, hi - lo)
+        if found is not None:
+            return lo + found
+    return None
+
+
+def _first_outward(q0: float, u0: float, b: float, span: float) -> float | None:
+    """Least tau in [0, span] with q(tau) = q0 + u0 tau + b tau^2/2 >= 0 and q'(tau) > 0 (or
+    q' = 0 turning positive)."""
+    if q0 >= 0.0 and (u0 > 0.0 or (u0 == 0.0 and b > 0.0)):
+        return 0.0
+    candidates: list[float] = []
+    if b > 0.0 and u0 < 0.0:  # the velocity turns outwards at -u0/b
+        tv = -u0 / b
+        if q0 + u0 * tv + 0.5 * b * tv * tv >= 0.0:
+            candidates.append(tv)
+    if b == 0.0:
+        if u0 > 0.0 and q0 < 0.0:
+            candidates.append(-q0 / u0)
+    else:
+        disc = u0 * u0 - 2.0 * b * q0
+        if disc >= 0.0:
+            r = math.sqrt(disc)
+            for tau in ((-u0 - r) / b, (-u0 + r) / b):
+                if tau >= 0.0 and u0 + b * tau > 0.0:
+                    candidates.append(tau)
+    hits = [tau for tau in candidates if 0.0 <= tau <= span]
+    return min(hits) if hits else None

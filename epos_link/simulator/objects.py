@@ -5,19 +5,19 @@ The generic CiA 301 checks (existence, access, length, EDS range) are in
 EPOS4 has on top of them, as hooks on the store:
 
 =============  ====================================================================
-6041h, 6061h,  read from the drive model (statusword, mode display, position,
-6062h, 6064h,  velocity in the unit of 60A9h)
+6041h, 6061h,  read from the drive model (statusword, mode display, position
+6062h, 6064h,  demand and actual, velocity in the unit of 60A9h)
 606Ch
 607Ah          target position: handed to the drive model, which follows it at
                once in cyclic synchronous position mode (8)
 3000h:05       main sensor resolution = 4 x 3010h:01 (read-only, see units)
 6040h, 6060h,  handed to the drive model (controlword, mode, target velocity);
 60FFh          6060h refuses modes outside 6502h with 06090030h
-60A9h          SI unit velocity: rpm with a prefix 10^0..10^-6, else 06090030h
+60A9h          SI unit velocity: rpm with a prefix 10^0..10^-3, else 06090030h
 3010h:01       encoder pulses: the drive re-plans in the new units
-6098h          homing method: only the supported methods, else 06090030h
+6098h          homing method: only maxon's methods (homing.py), else 06090030h
 1003h:00       error history: 0 clears it, anything else 06090030h
-2100h          simulator command (faults, power cycle), else 06090030h
+2100h          simulator command (faults, power cycle, block/release), else 06090030h
 =============  ====================================================================
 """
 from __future__ import annotations
@@ -57,6 +57,9 @@ class DriveModel(Protocol):
     def position(self) -> int: ...
 
     @property
+    def demand_position(self) -> int: ...
+
+    @property
     def velocity(self) -> int: ...
 
     def on_controlword(self, value: Value) -> None: ...
@@ -76,7 +79,7 @@ def install_object_rules(store: ObjectStore, drive: DriveModel) -> None:
     s = store
     s.add_read_hook(0x6041, 0, lambda: drive.statusword)
     s.add_read_hook(0x6061, 0, lambda: int(drive.mode))
-    s.add_read_hook(0x6062, 0, lambda: drive.position)
+    s.add_read_hook(0x6062, 0, lambda: drive.demand_position)
     s.add_read_hook(0x6064, 0, lambda: drive.position)
     s.add_read_hook(0x606C, 0, lambda: drive.velocity)
     s.add_read_hook(*MAIN_SENSOR_RESOLUTION, lambda: increments_per_revolution(s))

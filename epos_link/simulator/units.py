@@ -16,12 +16,13 @@ Sources and choices:
 * Velocity (6081h, 607Fh, 6080h, 60FFh, 606Ch, 6099h:01/02) is in the unit of
   60A9h "SI unit velocity", default 0x00B44700 = rpm (EPOS4 Firmware
   Specification 6.2.129 as quoted by public drivers). 60A9h is writable; its
-  most significant byte is a power-of-ten prefix. Public EPOS4 drivers use
-  exactly the prefixes 0x00 (rpm), 0xFF, 0xFE, 0xFD, 0xFC, 0xFB and 0xFA
-  (10^-1 .. 10^-6 rpm) with the low three bytes 0xB44700; nothing public
-  documents another value, so the simulator refuses any other value with
-  0x06090030 (value range of parameter exceeded), the abort an EPOS4 gives
-  for a value outside an object's range. **Chosen**, not read from maxon.
+  most significant byte is a power-of-ten prefix. maxon's velocity notation
+  defines four prefixes: the EPOS Command Library (Definitions.h,
+  "VelocityNotation") has VN_STANDARD = 0, VN_DECI = -1, VN_CENTI = -2 and
+  VN_MILLI = -3, i.e. prefix bytes 0x00, 0xFF, 0xFE, 0xFD (rpm down to
+  milli-rpm) with the low three bytes 0xB44700. Any other value (micro-rpm
+  and below included) is refused with 0x06090030 (value range of parameter
+  exceeded), the abort an EPOS4 gives for a value outside an object's range.
 * Changing 60A9h does not rescale the stored velocity objects: their numbers
   are read in the new unit from then on (**chosen**; the manuals we have do
   not say what the EPOS4 does).
@@ -60,9 +61,9 @@ ENCODER_PULSES = (0x3010, 0x01)
 VELOCITY_UNIT_RPM = 0x00B44700  # 60A9h default: prefix 0, revolution (B4h) per minute (47h)
 ACCELERATION_UNIT = 0x00C00300  # 60AAh: rpm/s, fixed
 
-# Prefix byte -> power of ten, as public EPOS4 drivers use them (see the docstring).
+# Prefix byte -> power of ten: maxon's velocity notation (Definitions.h VN_*).
 VELOCITY_PREFIXES: Mapping[int, int] = MappingProxyType({
-    0x00: 0, 0xFF: -1, 0xFE: -2, 0xFD: -3, 0xFC: -4, 0xFB: -5, 0xFA: -6,
+    0x00: 0, 0xFF: -1, 0xFE: -2, 0xFD: -3,
 })
 
 QUADRATURE = 4  # increments per encoder pulse (A/B edges)
@@ -76,7 +77,7 @@ def velocity_exponent(si_unit: int) -> int:
     """The power of ten of a 60A9h value, or ValueError if the EPOS4 would refuse it."""
     prefix, unit = (si_unit >> 24) & 0xFF, si_unit & 0x00FFFFFF
     if unit != VELOCITY_UNIT_RPM or prefix not in VELOCITY_PREFIXES or not 0 <= si_unit < 1 << 32:
-        raise ValueError(f"SI unit velocity 0x{si_unit:08X} is not rpm with a prefix 10^0..10^-6")
+        raise ValueError(f"SI unit velocity 0x{si_unit:08X} is not rpm with a prefix 10^0..10^-3")
     return VELOCITY_PREFIXES[prefix]
 
 

@@ -35,7 +35,7 @@ from typing import IO, Any, Optional, Sequence
 
 from ..capture import CaptureWriter
 from ..errors import TransportError
-from .link import Device, LinkOptions, LinkServer
+from .link import USB_FRAME_TIMEOUT, Device, LinkOptions, LinkServer
 
 log = logging.getLogger(__name__)
 HELPER = Path(__file__).with_name("usb_testbed.py")
@@ -113,7 +113,8 @@ class UsbLink:
         if len(set(serials)) != len(serials):
             raise ValueError("serial numbers must differ")
         locked: Any = _LockedTrace(trace) if trace is not None else None
-        self.servers = [LinkServer(d, options, locked) for d in devices]
+        self.servers = [LinkServer(d, options, locked, frame_timeout_object=USB_FRAME_TIMEOUT)
+                        for d in devices]
         self._events: "queue.Queue[dict[str, Any]]" = queue.Queue(MAX_EVENTS)
         self._send_lock = threading.Lock()
         self._command_lock = threading.Lock()  # one plug/unplug/stats exchange at a time

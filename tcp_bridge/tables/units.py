@@ -71,8 +71,11 @@ def _to_int32(d: Decimal, what: str, sign: int = 1) -> int:
 
 RPM: Final = 0x00B44700  # 60A9h: prefix 00 (10^0), B4h revolutions, 47h per minute
 # Prefixes the bridge knows for 60A9h (CiA 402-2 6.2 / CiA 303-2 notation, a
-# signed power of ten in the most significant byte): 10^0 down to 10^-6.
-VELOCITY_EXPONENTS: Final = frozenset(range(-6, 1))
+# signed power of ten in the most significant byte): 10^0 down to 10^-3, the
+# four maxon's velocity notation defines (EPOS Command Library, Definitions.h
+# VN_STANDARD .. VN_MILLI). Another prefix leaves the axis's velocity unit
+# unknown: velocity commands are refused rather than scaled by a guess.
+VELOCITY_EXPONENTS: Final = frozenset(range(-3, 1))
 
 
 def velocity_exponent(unit: int) -> int:
