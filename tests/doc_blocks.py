@@ -162,15 +162,18 @@ def all_blocks() -> list[Block]:
 
 def matches(expected: list[str], actual: list[str]) -> bool:
     """``...`` alone on a line: any lines; ``...`` inside a line: any text."""
-    if not expected:
-        return not actual
-    head, rest = expected[0], expected[1:]
-    if head == "...":
-        return any(matches(rest, actual[k:]) for k in range(len(actual) + 1))
-    if not actual:
-        return False
-    pattern = ".*".join(re.escape(part) for part in head.split("..."))
-    return re.fullmatch(pattern, actual[0]) is not None and matches(rest, actual[1:])
+    # can[j]: actual[j:] matches the expected lines from the one being looked at on
+    # (filled from the last expected line back: no recursion, whatever the length).
+    can = [j == len(actual) for j in range(len(actual) + 1)]
+    for head in reversed(expected):
+        if head == "...":
+            for j in range(len(actual) - 1, -1, -1):
+                can[j] = can[j] or can[j + 1]
+            continue
+        pattern = re.compile(".*".join(re.escape(part) for part in head.split("...")))
+        can = [j < len(actual) and pattern.fullmatch(actual[j]) is not None and can[j + 1]
+               for j in range(len(actual) + 1)]
+    return can[0]
 
 
 def free_port() -> int:
