@@ -10,8 +10,8 @@ Every test body runs unchanged against:
 Each path is exercised on the gateway device itself and on a drive behind it.
 A flow either behaves the same on both paths, or (only through the gateway)
 raises ``GatewayLimitationError`` naming the service: see
-``test_refused_services``. What differs is listed in the README's canopen
-section; the gateway's own rules are tested in ``test_canopen_gateway.py``.
+``test_refused_services``. What differs is listed in docs/canopen.md
+(its table); the gateway's own rules are tested in ``test_canopen_gateway.py``.
 
 The simulated drives take ``BOOT_TIME`` after an NMT reset before they answer
 SDO and send their boot-up message (guide Table 3-13), so waiting for the

@@ -36,7 +36,7 @@ def test_every_axis_table_of_the_guide_loads(text: str) -> None:
     assert table.buses
 
 
-@pytest.mark.parametrize("path", ["README.md", "docs/hardware.md",
+@pytest.mark.parametrize("path", ["README.md", "docs/hardware.md", "docs/epos-link.md",
                                   "epos_link/transports/usb.py", "epos_link/tools/ports.py"])
 def test_no_world_writable_udev_rule(path: str) -> None:
     text = (ROOT / path).read_text()

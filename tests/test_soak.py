@@ -2,7 +2,7 @@
 ``tcp-bridge serve --simulate`` process; nothing is lost, no move runs twice or ends
 elsewhere, and the server's memory and descriptors come back to where they started.
 
-The full run is ``python bench/soak.py`` (600 s); its figures are in the README.
+The full run is ``python bench/soak.py`` (600 s); its figures are in docs/benchmarks.md.
 """
 from __future__ import annotations
 

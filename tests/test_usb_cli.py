@@ -99,7 +99,7 @@ def wrapped(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]
                           timeout=WAIT, env=env)
 
 
-def test_the_readme_example_reads_the_name_over_usb(
+def test_the_docs_example_reads_the_name_over_usb(
         served: tuple[subprocess.Popen[str], dict[str, str]]) -> None:
     _, env = served
     out = wrapped(env, "read", "usb://", "0", "0x1008", "0", "--type", "str")

@@ -77,7 +77,7 @@ def test_wireshark_path() -> None:
 
 @needs_tshark
 def test_tshark_reads_an_exported_capture(tmp_path: Path) -> None:
-    """The command of the README, exactly."""
+    """The command of docs/epos-link.md (Wireshark), exactly."""
     out = export(tmp_path, "guide_read_home_position.txt")
     lua = cli("wireshark", "path").stdout.strip()
     lines = tshark("-X", f"lua_script:{lua}", "-r", str(out), "-T", "fields",
