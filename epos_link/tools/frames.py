@@ -40,7 +40,7 @@ from ..messages import (
     WriteObject,
 )
 from .decode import Decoded, Pairing, StreamDecoder
-from .objects import ObjectDirectory, ObjectInfo, Value
+from .objects import ObjectDirectory, ObjectInfo, Value, meaning
 
 MAX_TRANSFER = 64 * 1024
 
@@ -60,6 +60,7 @@ class FrameEvent:
     value_text: Optional[str] = None
     latency: Optional[float] = None       # answers: seconds from the end of their request
     answers: Optional[str] = None         # answers: the name of the request answered
+    meaning: Optional[str] = None         # what the value means (objects.meaning): a CiA 402 state
 
     @property
     def raw(self) -> bytes:
@@ -86,6 +87,8 @@ class FrameEvent:
                 out["type"] = self.obj.type.name
         if self.value is not None:
             out["value"] = self.value.hex() if isinstance(self.value, bytes) else self.value
+        if self.meaning is not None:
+            out["meaning"] = self.meaning
         if self.answers is not None:
             out["answers"] = self.answers
         if self.latency is not None:
@@ -176,6 +179,10 @@ class LinkDecoder:
         except Exception:  # too few bytes for the type: show the hex only
             return
         event.value_text = typ.format(event.value)
+        note = meaning(event.index or 0, event.subindex or 0, event.value)
+        if note is not None:
+            event.value_text += f" [{note}]"
+            event.meaning = note
 
     def _annotate(self, time: float, direction: str, line: Decoded) -> FrameEvent:
         conv = self.conversation
