@@ -82,7 +82,8 @@ def test_unknown_name_is_a_usage_error(dev: SocketResponder, capsys: pytest.Capt
 def test_read_decimal_index_and_json(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "read", dev.url, "1", "24676", "0x0", "--json")
     assert code == 0
-    assert json.loads(out) == {"node": 1, "index": 0x6064, "subindex": 0, "name": "Position actual value",
+    # Indexes as hex strings, as the text output and decode/monitor show them.
+    assert json.loads(out) == {"node": 1, "index": "0x6064", "subindex": "0x00", "name": "Position actual value",
                                "type": "i32", "value": 1000, "raw": "e8030000", "data": "e8030000"}
 
 

@@ -21,7 +21,7 @@ def test_request_hex_in_one_argument() -> None:
     assert out.returncode == 0, out.stderr
     (obj,) = [json.loads(line) for line in out.stdout.splitlines()]
     assert obj["opcode"] == 0x60 and obj["name"] == "ReadObject"
-    assert (obj["node"], obj["index"], obj["subindex"]) == (1, 0x30B0, 0)
+    assert (obj["node"], obj["index"], obj["subindex"]) == (1, "0x30B0", "0x00")
     assert obj["data"] == "" and obj["error_code"] is None and obj["crc_ok"] is True
 
 
@@ -52,7 +52,7 @@ def test_fixture_file(how: str) -> None:
     out = decode(*args, "--json")
     assert out.returncode == 0, out.stderr
     tx, rx = [json.loads(line) for line in out.stdout.splitlines()]
-    assert tx["direction"] == "TX" and tx["index"] == 0x30B0
+    assert tx["direction"] == "TX" and tx["index"] == "0x30B0"
     assert rx["direction"] == "RX" and rx["name"] == "ReadObjectAnswer"
     assert rx["data"] == "01900000"
 

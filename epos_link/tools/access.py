@@ -72,7 +72,7 @@ def _add_read(parser: argparse.ArgumentParser) -> None:
                         help="object subindex (default 0)")
     _dictionary_options(parser)
     parser.add_argument("--json", action="store_true",
-                        help='print {"node", "index", "subindex", "name", "type", "value", '
+                        help='print {"node", "index": "0x6041", "subindex": "0x00", "name", "type", "value", '
                         '"meaning" (statusword: its CiA 402 state), "raw"}')
     add_link_options(parser)
 
@@ -165,8 +165,9 @@ def _read(args: argparse.Namespace, client: EposClient) -> int:
     shown = data[:typ.size] if typ.size is not None else data
     note = meaning(target.index, target.subindex, value)
     if args.json:
-        out = {"node": target.node, "index": target.index,
-               "subindex": target.subindex, "name": target.name, "type": typ.name,
+        # Indexes as hex strings, as every other output shows them (0x6041, not 24641).
+        out = {"node": target.node, "index": f"0x{target.index:04X}",
+               "subindex": f"0x{target.subindex:02X}", "name": target.name, "type": typ.name,
                "value": value.hex() if isinstance(value, bytes) else value,
                "raw": shown.hex(), "data": data.hex()}
         if note is not None:

@@ -59,7 +59,7 @@ class Decoded:
     def as_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "direction": self.direction, "opcode": self.opcode, "name": self.name,
-            "node": self.node, "index": self.index, "subindex": self.subindex,
+            "node": self.node, "index": hex_index(self.index), "subindex": hex_subindex(self.subindex),
             "data": self.data.hex(), "error_code": self.error_code, "crc_ok": self.crc_ok,
         }
         if self.error_code is not None:
@@ -91,6 +91,16 @@ class Decoded:
 
 def _hex(data: bytes) -> str:
     return data.hex(" ").upper()
+
+
+def hex_index(index: Optional[int]) -> Optional[str]:
+    """JSON shows indexes as the text does, ``"0x6041"``: an index in decimal (24641)
+    is read by nobody."""
+    return None if index is None else f"0x{index:04X}"
+
+
+def hex_subindex(subindex: Optional[int]) -> Optional[str]:
+    return None if subindex is None else f"0x{subindex:02X}"
 
 
 def describe_frame(frame: Frame, direction: Optional[str],

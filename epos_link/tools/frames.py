@@ -39,7 +39,7 @@ from ..messages import (
     SegmentWrite,
     WriteObject,
 )
-from .decode import Decoded, Pairing, StreamDecoder
+from .decode import Decoded, Pairing, StreamDecoder, hex_index, hex_subindex
 from .objects import ObjectDirectory, ObjectInfo, Value, meaning
 
 MAX_TRANSFER = 64 * 1024
@@ -80,7 +80,8 @@ class FrameEvent:
         out: dict[str, Any] = {"time": round(self.time if time_value is None else time_value, 6)}
         out.update(self.decoded.as_json())
         if self.node is not None and out.get("node") is None:
-            out["node"], out["index"], out["subindex"] = self.node, self.index, self.subindex
+            out["node"], out["index"], out["subindex"] = (self.node, hex_index(self.index),
+                                                          hex_subindex(self.subindex))
         if self.obj is not None:
             out["object"] = self.obj.name
             if self.obj.type is not None:
