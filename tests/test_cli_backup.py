@@ -147,3 +147,21 @@ def test_progress_bar_on_a_terminal(drive: str, tmp_path: Path) -> None:
     text = seen.decode(errors="replace")
     assert "\r[" in text and "] 1/" in text and "Device type" in text
     assert "read" in text and "wrote" in text  # the summary
+
+
+def test_backup_to_standard_output(drive: str, tmp_path: Path) -> None:
+    # "-o -" is standard output, as everywhere else in epos-link: no file named "-".
+    import os
+
+    # Run in tmp_path (a file named "-" would appear there), this checkout first on the path.
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    p = subprocess.run([sys.executable, "-m", "epos_link.cli", "backup", drive, "2", "-o", "-"],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
+    assert p.returncode == 0, p.stderr
+    assert not (tmp_path / "-").exists()
+    assert "[1008]" in p.stdout and "ParameterValue=EPOS4" in p.stdout
+    assert "wrote standard output" in p.stderr
+    dcf = tmp_path / "out.dcf"
+    dcf.write_text(p.stdout)
+    assert canopen.import_od(str(dcf), 2)[0x1008].value == "EPOS4"  # the whole DCF, loadable

@@ -2,7 +2,7 @@
 
 ::
 
-    epos-link backup  URL NODE [--eds FILE] -o FILE.dcf
+    epos-link backup  URL NODE [--eds FILE] -o FILE.dcf   (-o -: standard output)
     epos-link restore URL NODE FILE.dcf [--dry-run] [--force]
 
 Backup reads every readable object of the object dictionary (the shipped
@@ -82,7 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _add_common(parser)
     if name == "backup":
         parser.add_argument("--eds", metavar="FILE", help="object dictionary to read (default: the shipped EPOS4 EDS)")
-        parser.add_argument("-o", "--output", required=True, metavar="FILE.dcf", help="the DCF to write")
+        parser.add_argument("-o", "--output", required=True, metavar="FILE.dcf",
+                            help="the DCF to write; - for standard output")
     else:
         parser.add_argument("dcf", metavar="FILE.dcf", help="a DCF written by epos-link backup (or any DCF)")
         parser.add_argument("--dry-run", action="store_true", help="compare and report, write nothing")
@@ -252,15 +253,21 @@ def run(args: argparse.Namespace) -> int:
             od.node_id = node_id
             od.comments = (f"Backup of node {args.node} at {args.url} by epos-link, "
                            f"{time.strftime('%Y-%m-%d %H:%M:%S')}")
+            # "-o -": the DCF is standard output, so everything else goes to standard error.
+            to_stdout = args.output == "-"
+            notes = sys.stderr if to_stdout else sys.stdout
             for o in outcomes:
                 if o.result == "unreadable":
-                    print(f"unreadable 0x{o.info.index:04X}/0x{o.info.subindex:02X} {o.info.name}: {o.detail}")
+                    print(f"unreadable 0x{o.info.index:04X}/0x{o.info.subindex:02X} {o.info.name}: {o.detail}",
+                          file=notes)
             try:
-                canopen.export_od(od, args.output, doc_type="dcf")
+                canopen.export_od(od, sys.stdout if to_stdout else args.output, doc_type="dcf")
+                sys.stdout.flush()
             except OSError as exc:
                 print(f"{prog}: cannot write {args.output}: {exc}", file=sys.stderr)
                 return 2
-            print(f"{prog}: {_summary(outcomes)}; wrote {args.output}", file=sys.stderr)
+            where = "standard output" if to_stdout else args.output
+            print(f"{prog}: {_summary(outcomes)}; wrote {where}", file=sys.stderr)
             return 1 if any(o.result == "unreadable" for o in outcomes) else 0
         od = _load_od(args.dcf, node_id)
         with open_client(args) as client:
