@@ -71,3 +71,12 @@ def test_bad_input_is_a_message_not_a_traceback(args: list[str], stdin: str) -> 
     out = decode(*args, stdin=stdin)
     assert out.returncode == 2
     assert "Traceback" not in out.stderr and "epos-link decode:" in out.stderr
+
+
+@pytest.mark.parametrize("name", ["/nonexistent.txt", "cap.txt", "captures/today"])
+def test_a_missing_file_is_named_as_such(name: str) -> None:
+    # Hex never holds "/" or ".": such an argument names a file, and a missing one is
+    # "no such file", not "not hex bytes".
+    out = decode(name)
+    assert out.returncode == 2
+    assert out.stderr == f"epos-link decode: {name}: no such file\n"

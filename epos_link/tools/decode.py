@@ -308,6 +308,10 @@ def _lines(args: argparse.Namespace) -> Iterator[Any]:
     if args.follow:
         return follow_file(args.follow, idle_exit=args.idle_exit)
     path = args.file or (args.hex[0] if len(args.hex) == 1 and os.path.isfile(args.hex[0]) else None)
+    if not path and len(args.hex) == 1 and ("/" in args.hex[0] or "." in args.hex[0] or os.sep in args.hex[0]):
+        # Hex has no "/" or ".": this names a file that is not there, and
+        # "not hex bytes" would send the user the wrong way.
+        raise FileNotFoundError(f"{args.hex[0]}: no such file")
     if path:
         return follow_file(path, idle_exit=0.0)  # a plain read to the end, line by line
     if args.hex:
