@@ -207,3 +207,12 @@ def test_bad_arguments_are_one_line_and_exit_2(args: list[str], message: str) ->
     p = subprocess.run([sys.executable, "-m", "epos_link.cli", "monitor", *args],
                        capture_output=True, text=True, timeout=WAIT)
     assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
+
+
+def test_a_missing_device_is_named_once(tmp_path: Path) -> None:
+    missing = str(tmp_path / "ttyUSB0")
+    p = subprocess.run([sys.executable, "-m", "epos_link.cli", "monitor", missing, "--pty"],
+                       capture_output=True, text=True, timeout=WAIT)
+    assert p.returncode == 2
+    assert p.stderr.count(missing) == 1, p.stderr
+    assert p.stderr.startswith(f"epos-link monitor: cannot open {missing}"), p.stderr

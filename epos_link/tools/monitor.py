@@ -150,7 +150,10 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
     try:
         device = open_transport(args.url, **({"baudrate": args.baud} if args.baud else {}))
     except (EposError, OSError) as exc:
-        print(f"{prog}: cannot open {args.url}: {exc}", file=sys.stderr)
+        # The transports' messages already name the URL ("cannot open /dev/ttyUSB0: ..."):
+        # say it once.
+        text = str(exc) if args.url in str(exc) else f"cannot open {args.url}: {exc}"
+        print(f"{prog}: {text}", file=sys.stderr)
         return 2
     try:
         front = TcpFront(*args.tcp) if args.tcp else PtyFront()
