@@ -34,12 +34,12 @@ class Monitor:
         self.proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "monitor", *args],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      env={**os.environ, **(env or {})})
-        listen_on = self.proc.stderr if "-" in args and "--pcapng" in args else self.proc.stdout
+        listen_on = self.proc.stderr  # always: standard output may go to /dev/null
         assert listen_on is not None
         ready, _, _ = select.select([listen_on], [], [], WAIT)
         assert ready, "the monitor did not say where it listens"
         first = listen_on.readline().decode()
-        assert first.startswith("listening on "), first + self.proc.stderr.read().decode()  # type: ignore[union-attr]
+        assert first.startswith("listening on "), first + listen_on.read().decode()
         self.where = first.split("listening on ", 1)[1].strip()
 
     def stop(self) -> tuple[int, str, str, bytes]:
@@ -114,7 +114,8 @@ def test_json_lines_and_time_modes(sim) -> None:  # type: ignore[no-untyped-def]
         client.read_object(2, 0x6081, 0)
     code, out, err, _ = mon.stop()
     assert code == 0, err
-    objs = [json.loads(line) for line in out.splitlines()[1:]]
+    objs = [json.loads(line) for line in out.splitlines()]  # every line of standard output is JSON
+    assert not [o for o in objs if "listening on" in str(o)]
     frames = [o for o in objs if "opcode" in o]
     assert [o["direction"] for o in frames] == ["TX", "RX"]
     assert frames[1]["object"] == "Profile velocity" and frames[1]["type"] == "u32"
