@@ -37,13 +37,26 @@ def test_answer_hex_in_many_arguments() -> None:
 
 def test_text_output() -> None:
     out = decode("90 02 00 04 00 00 00 00 01 90 90 00 00 9A 5C", "--responses")
-    assert "error=0x00000000 (No abort)" in out.stdout
-    assert "data=[01 90 00 00]" in out.stdout and "crc=ok" in out.stdout
+    # monitor's line format; bare hex has no times, so no timestamp column.
+    assert out.stdout == "RX Answer                         data [01 90 00 00] ok crc ok\n"
 
 
 def test_stdin_hex() -> None:
     out = decode(stdin="90 02 60 02 01 B0 30 00 2E 62\n")
-    assert "ReadObject (0x60) node=1 index=0x30B0 subindex=0x00" in out.stdout
+    assert out.stdout == "-- ReadObject                     node 1 0x30B0/0x00 Home position crc ok\n"
+
+
+def test_a_capture_decodes_to_monitors_lines_with_its_timestamps() -> None:
+    # The capture's times (guide Table 2-5/2-6 exchange, answer at 0.000868 s) and the
+    # line format of epos-link monitor (epos_link/tools/view.py), -x as in monitor.
+    out = decode(str(FIXTURE), "-x")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "(000.000000) TX ReadObject                     node 1 0x30B0/0x00 Home position crc ok"
+        "  [90 02 60 02 01 B0 30 00 2E 62]",
+        "(000.000868) RX Answer(ReadObject)             node 1 0x30B0/0x00 Home position"
+        " = 36865 (0x00009001) ok crc ok 0.868 ms  [90 02 00 04 00 00 00 00 01 90 90 00 00 9A 5C]",
+    ]
 
 
 @pytest.mark.parametrize("how", ["--file", "positional"])

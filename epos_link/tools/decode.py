@@ -8,8 +8,10 @@ Standard input is decoded line by line as it arrives (a capture or hex), and
 (:mod:`epos_link.tools.follow`, bounded waits, ``--idle-exit``). Captures are
 decoded with names and values from the object dictionary
 (:mod:`epos_link.tools.frames`).
-Every frame gives one line; a frame with a bad CRC is still decoded and marked;
-bytes that are not a frame are reported, never dropped.
+Every frame gives one line, as ``monitor`` prints it
+(:func:`epos_link.tools.view.format_event`; a capture's lines with its
+timestamps); a frame with a bad CRC is still decoded and marked; bytes that
+are not a frame are reported, never dropped.
 """
 from __future__ import annotations
 
@@ -242,6 +244,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eds", metavar="FILE",
                         help="object dictionary for names and values (default: the shipped EPOS4 EDS)")
     parser.add_argument("--json", action="store_true", help="one JSON object per frame")
+    parser.add_argument("-x", dest="hex_bytes", action="store_true", help="add the wire bytes in hex")
 
 
 class LineDecoder:
@@ -292,13 +295,31 @@ def _as_decoded(item: Any) -> Decoded:
     return item if isinstance(item, Decoded) else item.decoded
 
 
-def _text(item: Any) -> str:
-    if isinstance(item, Decoded):
-        return item.as_text()
-    text = item.decoded.as_text()
-    if item.obj is not None:
-        text += f"  # {item.obj.name}" + (f" = {item.value_text}" if item.value_text is not None else "")
-    return text
+class TextLines:
+    """Lines as ``monitor`` prints them (:func:`epos_link.tools.view.format_event`):
+    a capture's frames with their timestamps (zero-based, as the capture counts
+    them), bare hex without (it has no times), both with object names."""
+
+    def __init__(self, eds: Optional[str], hex_bytes: bool) -> None:
+        from .view import Clock, use_colour
+
+        self.eds = eds
+        self.hex_bytes = hex_bytes
+        self.clock = Clock("z")
+        self.colour = use_colour(sys.stdout)
+
+    def __call__(self, item: Any) -> str:
+        from .frames import FrameEvent
+        from .objects import load_directory
+        from .view import format_event
+
+        if isinstance(item, FrameEvent):
+            return format_event(item, self.clock, colour=self.colour, hex_bytes=self.hex_bytes)
+        event = FrameEvent(0.0, item.direction, item, node=item.node, index=item.index,
+                           subindex=item.subindex)
+        if item.index is not None:
+            event.obj = load_directory(self.eds).find(item.index, item.subindex or 0)
+        return format_event(event, None, colour=self.colour, hex_bytes=self.hex_bytes)
 
 
 def _lines(args: argparse.Namespace) -> Iterator[Any]:
@@ -324,6 +345,7 @@ def run(args: argparse.Namespace) -> int:
 
     prog = "epos-link decode"
     decoder = LineDecoder(args.eds, args.responses)
+    text = TextLines(args.eds, args.hex_bytes)
     count = damaged = 0
 
     def emit(item: Any) -> None:
@@ -331,7 +353,7 @@ def run(args: argparse.Namespace) -> int:
         d = _as_decoded(item)
         count += 1
         damaged += bool(d.problem or d.crc_ok is False)
-        print(json.dumps(item.as_json()) if args.json else _text(item), flush=True)
+        print(json.dumps(item.as_json()) if args.json else text(item), flush=True)
 
     try:
         for line in _lines(args):
