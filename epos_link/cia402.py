@@ -34,7 +34,9 @@ __all__ = [
     "State",
     "TRANSITIONS",
     "decode_command",
+    "describe_statusword",
     "state_from_statusword",
+    "state_text",
 ]
 
 
@@ -117,6 +119,33 @@ def state_from_statusword(statusword: int) -> State | None:
         if statusword & mask == value:
             return state
     return None
+
+
+# Statusword bits worth naming next to the state when set (CiA 402-2 6.4.1.4;
+# bit 15 is maxon's, EPOS4 Firmware Specification "Statusword"). The
+# operation-mode-specific bits 12 and 13 are left out: their meaning depends
+# on 6061h, which a single reading does not carry.
+_FLAG_NAMES: tuple[tuple[SW, str], ...] = (
+    (SW.VOLTAGE_ENABLED, "voltage enabled"),
+    (SW.WARNING, "warning"),
+    (SW.REMOTE, "remote"),
+    (SW.TARGET_REACHED, "target reached"),
+    (SW.INTERNAL_LIMIT_ACTIVE, "internal limit active"),
+    (SW.POSITION_REFERENCED, "position referenced"),
+)
+
+
+def state_text(state: State | None) -> str:
+    """A state as the tools print it: ``switch on disabled``; ``no CiA 402 state``."""
+    return "no CiA 402 state" if state is None else state.name.replace("_", " ").lower()
+
+
+def describe_statusword(statusword: int) -> str:
+    """The state and the set flags of a statusword, for people:
+    ``switch on disabled``, ``operation enabled, remote, target reached``."""
+    parts = [state_text(state_from_statusword(statusword))]
+    parts += [name for bit, name in _FLAG_NAMES if statusword & bit]
+    return ", ".join(parts)
 
 
 class Command(Enum):

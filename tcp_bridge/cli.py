@@ -313,7 +313,9 @@ def parser() -> argparse.ArgumentParser:
                         "unanswered and logged")
     s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
     s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
-    s.add_argument("-v", "--verbose", action="store_true", help="log connections")
+    s.add_argument("-v", "--verbose", action="count", default=0,
+                   help="log connections and the bridge's own steps; -vv adds canopen's "
+                        "lines (SDO client and, with --simulate, the drives' SDO server)")
     c = sub.add_parser("check", help="read-only pre-flight: does every axis answer as configured?",
                        description="Read each configured drive's name, identity, CiA 402 state, "
                                    "mode, position and units, compare them with the axis table, "
@@ -354,9 +356,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
     logging.getLogger("tcp_bridge.bus.sdo").setLevel(logging.INFO)
-    if not args.verbose:
+    if args.verbose < 2:
         # canopen logs an absent node's SDO timeout as an error ("Transfer aborted
         # by client"); the bridge already answers it NAK and says why with -v/91.
+        # At -v its INFO lines would drown the bridge's (147 of 152 at start-up,
+        # the simulated drives' SDO server among them): they come at -vv.
         logging.getLogger("canopen").setLevel(logging.CRITICAL)
     try:
         return asyncio.run(_serve(args))

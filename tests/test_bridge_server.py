@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import signal
 import socket
 import struct
@@ -474,7 +475,9 @@ def test_debug_print_91_logs_requests_replies_and_sdo(running: Running,
             exchange(s, b"1S91=1", b"1R10", b"1S91=0", b"1R10")
     text = caplog.text
     assert "b'1R10'" in text and "1 R 10=" in text
-    assert "SDO upload 0x6041/0" in text
+    # Named, and the statusword decoded (CiA 402-2 6.4.1.4), as read and monitor show it.
+    assert "SDO upload 0x6041/0 Statusword " in text
+    assert re.search(r"SDO upload 0x6041/0 Statusword [0-9a-f ]+ \[[a-z ,]+\]", text), text
     assert text.count("SDO upload") == 1  # the second R10 ran with debug off
 
 

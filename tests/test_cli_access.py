@@ -82,8 +82,20 @@ def test_unknown_name_is_a_usage_error(dev: SocketResponder, capsys: pytest.Capt
 def test_read_decimal_index_and_json(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "read", dev.url, "1", "24676", "0x0", "--json")
     assert code == 0
-    assert json.loads(out) == {"node": 1, "index": 0x6064, "subindex": 0, "name": "Position actual value",
+    # Indexes as hex strings, as the text output and decode/monitor show them.
+    assert json.loads(out) == {"node": 1, "index": "0x6064", "subindex": "0x00", "name": "Position actual value",
                                "type": "i32", "value": 1000, "raw": "e8030000", "data": "e8030000"}
+
+
+def test_read_statusword_shows_its_cia402_state(capsys: pytest.CaptureFixture[str]) -> None:
+    # 0x0040: bit 6 alone = "switch on disabled" (CiA 402-2 6.4.1.4, state coding);
+    # 0x0637: operation enabled with voltage enabled, remote and target reached.
+    script = dict([read_pair(2, 0x6041, 0, b"\x40\x00"), read_pair(3, 0x6041, 0, b"\x37\x06")])
+    with SocketResponder(script) as dev:
+        code, out, _ = cli(capsys, "read", dev.url, "2", "Statusword")
+        assert (code, out) == (0, "40 00 -> u16 64 (0x0040) [switch on disabled]  Statusword\n")
+        code, out, _ = cli(capsys, "read", dev.url, "3", "0x6041", "--json")
+    assert json.loads(out)["meaning"] == "operation enabled, voltage enabled, remote, target reached"
 
 
 def test_read_signed(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:

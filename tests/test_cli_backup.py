@@ -147,3 +147,68 @@ def test_progress_bar_on_a_terminal(drive: str, tmp_path: Path) -> None:
     text = seen.decode(errors="replace")
     assert "\r[" in text and "] 1/" in text and "Device type" in text
     assert "read" in text and "wrote" in text  # the summary
+
+
+def test_backup_to_standard_output(drive: str, tmp_path: Path) -> None:
+    # "-o -" is standard output, as everywhere else in epos-link: no file named "-".
+    import os
+
+    # Run in tmp_path (a file named "-" would appear there), this checkout first on the path.
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    p = subprocess.run([sys.executable, "-m", "epos_link.cli", "backup", drive, "2", "-o", "-"],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
+    assert p.returncode == 0, p.stderr
+    assert not (tmp_path / "-").exists()
+    assert "[1008]" in p.stdout and "ParameterValue=EPOS4" in p.stdout
+    assert "wrote standard output" in p.stderr
+    dcf = tmp_path / "out.dcf"
+    dcf.write_text(p.stdout)
+    assert canopen.import_od(str(dcf), 2)[0x1008].value == "EPOS4"  # the whole DCF, loadable
+
+
+def test_restore_changes_only(drive: str, tmp_path: Path) -> None:
+    dcf = tmp_path / "node2.dcf"
+    assert cli("backup", drive, "2", "-o", str(dcf)).returncode == 0
+    change(drive)
+    p = cli("restore", drive, "2", str(dcf), "--changes-only")
+    assert p.returncode == 0, p.stderr
+    # Only the three objects it wrote, not the ~100 unchanged or skipped around them.
+    assert [line.split()[:2] for line in p.stdout.splitlines()] == [
+        ["written", "0x607C/0x00"], ["written", "0x607D/0x02"], ["written", "0x6081/0x00"]]
+    assert "3 written" in p.stderr and "unchanged" in p.stderr  # the summary counts all
+
+
+def test_interrupted_restore_prints_its_summary(drive: str, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """Ctrl-C during the writes: the summary of what was done, exit 130. The Ctrl-C
+    arrives (as KeyboardInterrupt, what Python makes of SIGINT) in the second write."""
+    from epos_link.cli import main
+    from epos_link.tools import backup as backup_tool
+
+    dcf = tmp_path / "node2.dcf"
+    assert cli("backup", drive, "2", "-o", str(dcf)).returncode == 0
+    change(drive)
+    real_open = backup_tool.open_client
+
+    def open_client(args):  # type: ignore[no-untyped-def]
+        client = real_open(args)
+        real_download = client.download
+        writes = []
+
+        def download(*a, **k):  # type: ignore[no-untyped-def]
+            writes.append(a)
+            if len(writes) == 2:
+                raise KeyboardInterrupt
+            return real_download(*a, **k)
+
+        client.download = download  # type: ignore[method-assign]
+        return client
+
+    monkeypatch.setattr(backup_tool, "open_client", open_client)
+    code = main(["restore", drive, "2", str(dcf), "--no-progress"])
+    out, err = capsys.readouterr()
+    assert code == 130
+    assert [line.split()[0] for line in out.splitlines() if line.startswith("written")] == ["written"]
+    assert "epos-link restore: interrupted: " in err and "1 written" in err

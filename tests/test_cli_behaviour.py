@@ -215,15 +215,15 @@ def test_sim_port_in_use_is_named_once() -> None:
 # -- canopen's log lines ---------------------------------------------------------------------
 
 
-def test_canopen_log_lines_only_with_verbose(tmp_path: Path) -> None:
+def test_canopen_log_lines_only_with_vv(tmp_path: Path) -> None:
     """An absent node on a CAN bus answers NAK; canopen's "Transfer aborted" line
-    appears only with -v."""
+    appears only with -vv: -v shows the bridge's own lines."""
     config = tmp_path / "axes.toml"
     config.write_text('[bus.can1]\nbackend = "canopen"\ninterface = "virtual"\n'
                       f'channel = "quiet-{os.getpid()}"\nsdo_timeout = 0.05\n'
                       '[[axis]]\ndevice = 2\nnode_id = 5\n')
     stderr = {}
-    for extra in ([], ["-v"]):
+    for extra in ([], ["-v"], ["-vv"]):
         proc = subprocess.Popen([sys.executable, "-m", "tcp_bridge.cli", "serve", "--config",
                                  str(config), "--port", "0", "--maintenance-port", "-1", *extra],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -234,9 +234,31 @@ def test_canopen_log_lines_only_with_verbose(tmp_path: Path) -> None:
             assert reply.status.name == "NAK"
         finally:
             proc.send_signal(2)
-            _, stderr[bool(extra)] = proc.communicate(timeout=30)
-    assert "Transfer aborted" not in stderr[False]
-    assert "Transfer aborted" in stderr[True]  # the line exists: the quiet run hid it
+            _, stderr[" ".join(extra)] = proc.communicate(timeout=30)
+    assert "Transfer aborted" not in stderr[""]
+    assert "Transfer aborted" not in stderr["-v"] and "canopen" not in stderr["-v"]
+    assert "Transfer aborted" in stderr["-vv"]  # the line exists: the quieter runs hid it
+
+
+def test_serve_v_shows_the_bridges_own_lines(tmp_path: Path) -> None:
+    """serve --simulate -v: the bridge's start-up lines, none of canopen's (the simulated
+    drives' SDO server logs every upload at INFO); -vv shows those too."""
+    err = {}
+    for flag in ("-v", "-vv"):
+        proc = subprocess.Popen([sys.executable, "-m", "tcp_bridge.cli", "serve", "--simulate",
+                                 "--port", "0", "--maintenance-port", "-1", "--state-file",
+                                 str(tmp_path / "state.json"), flag],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            line = proc.stdout.readline()  # type: ignore[union-attr]
+            address = line.split("listening on ")[1].split(" ")[0]
+            [reply] = bridge_cli.send(address, ["2R10"], timeout=10)
+            assert reply.status.name == "ACK"
+        finally:
+            proc.send_signal(2)
+            _, err[flag] = proc.communicate(timeout=30)
+    assert "tcp_bridge." in err["-v"] and "canopen" not in err["-v"], err["-v"]
+    assert "canopen.sdo.server" in err["-vv"]
 
 
 # -- epos-link sim -----------------------------------------------------------------------------

@@ -21,7 +21,7 @@ def test_request_hex_in_one_argument() -> None:
     assert out.returncode == 0, out.stderr
     (obj,) = [json.loads(line) for line in out.stdout.splitlines()]
     assert obj["opcode"] == 0x60 and obj["name"] == "ReadObject"
-    assert (obj["node"], obj["index"], obj["subindex"]) == (1, 0x30B0, 0)
+    assert (obj["node"], obj["index"], obj["subindex"]) == (1, "0x30B0", "0x00")
     assert obj["data"] == "" and obj["error_code"] is None and obj["crc_ok"] is True
 
 
@@ -37,13 +37,26 @@ def test_answer_hex_in_many_arguments() -> None:
 
 def test_text_output() -> None:
     out = decode("90 02 00 04 00 00 00 00 01 90 90 00 00 9A 5C", "--responses")
-    assert "error=0x00000000 (No abort)" in out.stdout
-    assert "data=[01 90 00 00]" in out.stdout and "crc=ok" in out.stdout
+    # monitor's line format; bare hex has no times, so no timestamp column.
+    assert out.stdout == "RX Answer                         data [01 90 00 00] ok crc ok\n"
 
 
 def test_stdin_hex() -> None:
     out = decode(stdin="90 02 60 02 01 B0 30 00 2E 62\n")
-    assert "ReadObject (0x60) node=1 index=0x30B0 subindex=0x00" in out.stdout
+    assert out.stdout == "-- ReadObject                     node 1 0x30B0/0x00 Home position crc ok\n"
+
+
+def test_a_capture_decodes_to_monitors_lines_with_its_timestamps() -> None:
+    # The capture's times (guide Table 2-5/2-6 exchange, answer at 0.000868 s) and the
+    # line format of epos-link monitor (epos_link/tools/view.py), -x as in monitor.
+    out = decode(str(FIXTURE), "-x")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "(000.000000) TX ReadObject                     node 1 0x30B0/0x00 Home position crc ok"
+        "  [90 02 60 02 01 B0 30 00 2E 62]",
+        "(000.000868) RX Answer(ReadObject)             node 1 0x30B0/0x00 Home position"
+        " = 36865 (0x00009001) ok crc ok 0.868 ms  [90 02 00 04 00 00 00 00 01 90 90 00 00 9A 5C]",
+    ]
 
 
 @pytest.mark.parametrize("how", ["--file", "positional"])
@@ -52,7 +65,7 @@ def test_fixture_file(how: str) -> None:
     out = decode(*args, "--json")
     assert out.returncode == 0, out.stderr
     tx, rx = [json.loads(line) for line in out.stdout.splitlines()]
-    assert tx["direction"] == "TX" and tx["index"] == 0x30B0
+    assert tx["direction"] == "TX" and tx["index"] == "0x30B0"
     assert rx["direction"] == "RX" and rx["name"] == "ReadObjectAnswer"
     assert rx["data"] == "01900000"
 
@@ -71,3 +84,12 @@ def test_bad_input_is_a_message_not_a_traceback(args: list[str], stdin: str) -> 
     out = decode(*args, stdin=stdin)
     assert out.returncode == 2
     assert "Traceback" not in out.stderr and "epos-link decode:" in out.stderr
+
+
+@pytest.mark.parametrize("name", ["/nonexistent.txt", "cap.txt", "captures/today"])
+def test_a_missing_file_is_named_as_such(name: str) -> None:
+    # Hex never holds "/" or ".": such an argument names a file, and a missing one is
+    # "no such file", not "not hex bytes".
+    out = decode(name)
+    assert out.returncode == 2
+    assert out.stderr == f"epos-link decode: {name}: no such file\n"

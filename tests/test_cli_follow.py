@@ -26,11 +26,11 @@ def test_follow_a_growing_capture(tmp_path: Path) -> None:
     proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "decode", "--follow", str(cap),
                              "--idle-exit", "5"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert readline(proc).startswith("TX ReadObject (0x60) node=1 index=0x30B0")
+        assert readline(proc).startswith("(000.000000) TX ReadObject                     node 1 0x30B0/0x00")
         with cap.open("a") as fh:  # the capture grows while decode runs
             fh.write(RX)
         line = readline(proc)
-        assert line.startswith("RX ReadObjectAnswer") and "# Home position = 36865 (0x00009001)" in line
+        assert line.startswith("(000.000868) RX Answer(ReadObject)") and "Home position = 36865 (0x00009001)" in line
         assert proc.poll() is None
     finally:
         out, err = proc.communicate(timeout=WAIT)
@@ -57,7 +57,7 @@ def test_standard_input_is_decoded_as_it_arrives() -> None:
 def test_hex_on_standard_input_still_works() -> None:
     p = subprocess.run([sys.executable, "-m", "epos_link.cli", "decode"], input="90 02 60 02 01 B0 30 00 2E 62\n",
                        capture_output=True, text=True, timeout=WAIT)
-    assert p.returncode == 0 and p.stdout.startswith("-- ReadObject (0x60) node=1 index=0x30B0")
+    assert p.returncode == 0 and p.stdout.startswith("-- ReadObject                     node 1 0x30B0/0x00")
 
 
 def test_trace_dash_writes_to_standard_output(capsys) -> None:  # type: ignore[no-untyped-def]

@@ -105,3 +105,17 @@ def test_segmented_write_value_comes_with_the_last_segment() -> None:
     assert all(e.value is None for e in events)
     assert [e.answers for e in events if e.direction == "RX"] == [
         "InitiateSegmentedWrite", "SegmentWrite", "SegmentWrite", "SegmentWrite"]
+
+
+def test_statusword_value_names_its_cia402_state() -> None:
+    # ReadObject node 2 0x6041/0 and its answer 0x0040, built by tests/reference.py
+    # (guide 2.1.1.1 layout): "switch on disabled" by the CiA 402-2 6.4.1.4 state coding.
+    from tests.reference import reference_frame
+
+    request = reference_frame(0x60, bytes((2,)) + (0x6041).to_bytes(2, "little") + b"\x00")
+    answer = reference_frame(0x00, (0).to_bytes(4, "little") + b"\x40\x00\x00\x00")
+    d = decoder()
+    events = d.feed(0.0, "TX", request) + d.feed(0.001, "RX", answer)
+    ans = events[-1]
+    assert ans.value == 0x40 and ans.value_text == "64 (0x0040) [switch on disabled]"
+    assert ans.as_json()["meaning"] == "switch on disabled"

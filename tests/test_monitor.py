@@ -34,12 +34,12 @@ class Monitor:
         self.proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "monitor", *args],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      env={**os.environ, **(env or {})})
-        listen_on = self.proc.stderr if "-" in args and "--pcapng" in args else self.proc.stdout
+        listen_on = self.proc.stderr  # always: standard output may go to /dev/null
         assert listen_on is not None
         ready, _, _ = select.select([listen_on], [], [], WAIT)
         assert ready, "the monitor did not say where it listens"
         first = listen_on.readline().decode()
-        assert first.startswith("listening on "), first + self.proc.stderr.read().decode()  # type: ignore[union-attr]
+        assert first.startswith("listening on "), first + listen_on.read().decode()
         self.where = first.split("listening on ", 1)[1].strip()
 
     def stop(self) -> tuple[int, str, str, bytes]:
@@ -114,7 +114,8 @@ def test_json_lines_and_time_modes(sim) -> None:  # type: ignore[no-untyped-def]
         client.read_object(2, 0x6081, 0)
     code, out, err, _ = mon.stop()
     assert code == 0, err
-    objs = [json.loads(line) for line in out.splitlines()[1:]]
+    objs = [json.loads(line) for line in out.splitlines()]  # every line of standard output is JSON
+    assert not [o for o in objs if "listening on" in str(o)]
     frames = [o for o in objs if "opcode" in o]
     assert [o["direction"] for o in frames] == ["TX", "RX"]
     assert frames[1]["object"] == "Profile velocity" and frames[1]["type"] == "u32"
@@ -207,3 +208,12 @@ def test_bad_arguments_are_one_line_and_exit_2(args: list[str], message: str) ->
     p = subprocess.run([sys.executable, "-m", "epos_link.cli", "monitor", *args],
                        capture_output=True, text=True, timeout=WAIT)
     assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
+
+
+def test_a_missing_device_is_named_once(tmp_path: Path) -> None:
+    missing = str(tmp_path / "ttyUSB0")
+    p = subprocess.run([sys.executable, "-m", "epos_link.cli", "monitor", missing, "--pty"],
+                       capture_output=True, text=True, timeout=WAIT)
+    assert p.returncode == 2
+    assert p.stderr.count(missing) == 1, p.stderr
+    assert p.stderr.startswith(f"epos-link monitor: cannot open {missing}"), p.stderr

@@ -124,8 +124,9 @@ def test_install_puts_the_dissector_where_wireshark_finds_it(tmp_path: Path) -> 
     lua = tmp_path / ".local" / "lib" / "wireshark" / "plugins" / "maxon_serial_v2.lua"
     assert lua.read_text() == dissector_path().read_text()
     out = export(tmp_path, "guide_read_home_position.txt")
-    # No -X: tshark loads the personal plugin by itself.
-    assert tshark("-r", str(out), "-T", "fields", "-e", "maxon.opcode", env=env) == ["0x60", "0x00"]
+    # No -X: tshark loads the personal plugin by itself, and the dissector its objects.
+    assert tshark("-r", str(out), "-T", "fields", "-e", "maxon.opcode", "-e", "maxon.object",
+                  env=env) == ["0x60\tHome position", "0x00\tHome position"]
     assert "WIRESHARK_EXTCAP_DIR=" in p.stderr  # 4.0 has no personal extcap folder: install says so
 
 
@@ -190,3 +191,40 @@ def test_extcap_capture_writes_pcapng_through_the_monitor(tmp_path: Path) -> Non
     assert interfaces[0].linktype == 147
     assert [p.flags for p in packets] == [FLAG_OUTBOUND, FLAG_INBOUND]
     assert packets[0].data == bytes.fromhex("90 02 60 02 02 81 60 00 D6 3B")  # ReadObject node 2 0x6081/0
+
+
+@needs_tshark
+def test_installed_dissector_names_objects_and_types_values(tmp_path: Path) -> None:
+    """install generates the objects table from the EDS; the dissector shows the name and
+    the typed value (the statusword with its CiA 402 state), as monitor does."""
+    from tests.reference import reference_frame
+
+    p = cli("wireshark", "install", "--lua-dir", str(tmp_path / "lua"), "--no-extcap")
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "lua" / "maxon_serial_v2.objects").is_file()
+
+    def hexed(frame: bytes) -> str:
+        return frame.hex(" ").upper()
+
+    ok = (0).to_bytes(4, "little")
+    capture = tmp_path / "sw.txt"
+    capture.write_text("# epos-link capture v1\n" + "".join(f"{t} {d} {hexed(b)}\n" for t, d, b in [
+        # ReadObject node 2 0x6041/0 (guide 2.1.1.1), answer 0x0240: switch on disabled, remote
+        (0.0, "TX", reference_frame(0x60, bytes((2,)) + (0x6041).to_bytes(2, "little") + b"\x00")),
+        (0.001, "RX", reference_frame(0x00, ok + b"\x40\x02\x00\x00")),
+        # WriteObject node 2 0x607A/0 Target position = -100 (INTEGER32; guide 2.1.2.1)
+        (0.002, "TX", reference_frame(0x68, bytes((2,)) + (0x607A).to_bytes(2, "little") + b"\x00"
+                                      + (-100).to_bytes(4, "little", signed=True))),
+        (0.003, "RX", reference_frame(0x00, ok)),
+    ]))
+    out = tmp_path / "sw.pcapng"
+    assert cli("export", str(capture), "-o", str(out)).returncode == 0
+    lines = tshark("-X", f"lua_script:{tmp_path / 'lua' / 'maxon_serial_v2.lua'}", "-r", str(out),
+                   "-T", "fields", "-E", "separator=|", "-e", "maxon.object", "-e", "maxon.value",
+                   "-e", "_ws.col.Info")
+    assert lines[0] == "Statusword||ReadObject node 2 0x6041/0x00 Statusword"
+    assert lines[1].startswith("Statusword|576 (0x0240) [switch on disabled, remote]|Answer to ReadObject "
+                               "node 2 0x6041/0x00 Statusword = 576 (0x0240) [switch on disabled, remote]: ok")
+    assert lines[2].startswith("Target position|-100 (0xFFFFFF9C)|WriteObject node 2 0x607A/0x00 "
+                               "Target position = -100 (0xFFFFFF9C)")
+    assert lines[3].startswith("Target position||Answer to WriteObject node 2 0x607A/0x00 Target position: ok")

@@ -35,7 +35,7 @@ from typing import Callable, Optional
 from ..client import NMT_COMMANDS, EposClient
 from ..errors import LocalProtocolError
 from .common import add_link_options, add_url, guarded, open_client, parse_int
-from .objects import TYPE_NAMES, TYPES, ObjectInfo, ValueType, load_directory
+from .objects import TYPE_NAMES, TYPES, ObjectInfo, ValueType, load_directory, meaning
 
 DEFAULT_TYPE = "u32"
 
@@ -72,7 +72,8 @@ def _add_read(parser: argparse.ArgumentParser) -> None:
                         help="object subindex (default 0)")
     _dictionary_options(parser)
     parser.add_argument("--json", action="store_true",
-                        help='print {"node", "index", "subindex", "name", "type", "value", "raw"}')
+                        help='print {"node", "index": "0x6041", "subindex": "0x00", "name", "type", "value", '
+                        '"meaning" (statusword: its CiA 402 state), "raw"}')
     add_link_options(parser)
 
 
@@ -162,14 +163,20 @@ def _read(args: argparse.Namespace, client: EposClient) -> int:
     typ = target.type
     value = typ.decode(data)
     shown = data[:typ.size] if typ.size is not None else data
+    note = meaning(target.index, target.subindex, value)
     if args.json:
-        print(json.dumps({"node": target.node, "index": target.index, "subindex": target.subindex,
-                          "name": target.name, "type": typ.name,
-                          "value": value.hex() if isinstance(value, bytes) else value,
-                          "raw": shown.hex(), "data": data.hex()}))
+        # Indexes as hex strings, as every other output shows them (0x6041, not 24641).
+        out = {"node": target.node, "index": f"0x{target.index:04X}",
+               "subindex": f"0x{target.subindex:02X}", "name": target.name, "type": typ.name,
+               "value": value.hex() if isinstance(value, bytes) else value,
+               "raw": shown.hex(), "data": data.hex()}
+        if note is not None:
+            out["meaning"] = note
+        print(json.dumps(out))
     else:
         name = f"  {target.name}" if target.name else ""
-        print(f"{_hex(shown)} -> {typ.name} {typ.format(value)}{name}")
+        shown_note = f" [{note}]" if note is not None else ""
+        print(f"{_hex(shown)} -> {typ.name} {typ.format(value)}{shown_note}{name}")
     return 0
 
 

@@ -2,8 +2,8 @@
 
 ::
 
-    epos-link backup  URL NODE [--eds FILE] -o FILE.dcf
-    epos-link restore URL NODE FILE.dcf [--dry-run] [--force]
+    epos-link backup  URL NODE [--eds FILE] -o FILE.dcf   (-o -: standard output)
+    epos-link restore URL NODE FILE.dcf [--dry-run] [--force] [--changes-only]
 
 Backup reads every readable object of the object dictionary (the shipped
 EPOS4 EDS, or ``--eds``) and writes a DCF (CiA 306 with ``ParameterValue``)
@@ -24,9 +24,12 @@ Command objects are never written back, because writing them does something
 of operation and the targets 607Ah, 60FFh, 6071h): a restore must not enable,
 switch or move a drive. A restore to a drive whose statusword (6041h) says
 "operation enabled" is refused unless ``--force``. ``--dry-run`` reads and
-compares but writes nothing.
+compares but writes nothing. ``--changes-only`` leaves the ``unchanged`` and
+``skipped`` lines out. A summary line ends every run, an interrupted one
+(Ctrl-C, exit 130) included.
 
 Exit codes: 0 all done, 1 something was refused (or unreadable in a backup),
+130 interrupted (restore: after its summary),
 2 usage errors and failures before the first object.
 """
 from __future__ import annotations
@@ -82,11 +85,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _add_common(parser)
     if name == "backup":
         parser.add_argument("--eds", metavar="FILE", help="object dictionary to read (default: the shipped EPOS4 EDS)")
-        parser.add_argument("-o", "--output", required=True, metavar="FILE.dcf", help="the DCF to write")
+        parser.add_argument("-o", "--output", required=True, metavar="FILE.dcf",
+                            help="the DCF to write; - for standard output")
     else:
         parser.add_argument("dcf", metavar="FILE.dcf", help="a DCF written by epos-link backup (or any DCF)")
         parser.add_argument("--dry-run", action="store_true", help="compare and report, write nothing")
         parser.add_argument("--force", action="store_true", help="restore even to a drive in operation enabled")
+        parser.add_argument("--changes-only", action="store_true",
+                            help="print only objects written, refused or (dry run) differing; "
+                                 "the summary still counts all")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on a terminal")
     add_link_options(parser)
     parser.set_defaults(_backup=name)
@@ -155,16 +162,24 @@ def _dcf_value(var: ODVariable, typ: ValueType) -> Any:
     return value
 
 
+QUIET_RESULTS = frozenset({"unchanged", "skipped"})  # left out by --changes-only
+
+
 def restore(client: EposClient, node: int, od: canopen.ObjectDictionary, *, dry_run: bool,
-            progress: Progress, out: IO[str]) -> list[Outcome]:
+            progress: Progress, out: IO[str], changes_only: bool = False,
+            outcomes: Optional[list[Outcome]] = None) -> list[Outcome]:
+    """Restore ``od``'s values; one outcome per object, appended to ``outcomes`` as it
+    comes (pass a list to keep them when interrupted)."""
     directory = ObjectDirectory(od)
     todo = [info for info in directory.variables()
             if getattr(directory.variable(info.index, info.subindex), "value", None) is not None]
-    outcomes: list[Outcome] = []
+    outcomes = [] if outcomes is None else outcomes
     retry: list[ObjectInfo] = []
 
     def report(outcome: Outcome) -> None:
         progress.clear()
+        if changes_only and outcome.result in QUIET_RESULTS:
+            return
         info = outcome.info
         out.write(f"{outcome.result:<9} 0x{info.index:04X}/0x{info.subindex:02X} {info.name}"
                   + (f": {outcome.detail}" if outcome.detail else "") + "\n")
@@ -252,15 +267,21 @@ def run(args: argparse.Namespace) -> int:
             od.node_id = node_id
             od.comments = (f"Backup of node {args.node} at {args.url} by epos-link, "
                            f"{time.strftime('%Y-%m-%d %H:%M:%S')}")
+            # "-o -": the DCF is standard output, so everything else goes to standard error.
+            to_stdout = args.output == "-"
+            notes = sys.stderr if to_stdout else sys.stdout
             for o in outcomes:
                 if o.result == "unreadable":
-                    print(f"unreadable 0x{o.info.index:04X}/0x{o.info.subindex:02X} {o.info.name}: {o.detail}")
+                    print(f"unreadable 0x{o.info.index:04X}/0x{o.info.subindex:02X} {o.info.name}: {o.detail}",
+                          file=notes)
             try:
-                canopen.export_od(od, args.output, doc_type="dcf")
+                canopen.export_od(od, sys.stdout if to_stdout else args.output, doc_type="dcf")
+                sys.stdout.flush()
             except OSError as exc:
                 print(f"{prog}: cannot write {args.output}: {exc}", file=sys.stderr)
                 return 2
-            print(f"{prog}: {_summary(outcomes)}; wrote {args.output}", file=sys.stderr)
+            where = "standard output" if to_stdout else args.output
+            print(f"{prog}: {_summary(outcomes)}; wrote {where}", file=sys.stderr)
             return 1 if any(o.result == "unreadable" for o in outcomes) else 0
         od = _load_od(args.dcf, node_id)
         with open_client(args) as client:
@@ -269,7 +290,16 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{prog}: node {args.node} is in operation enabled (statusword 0x{sw:04X}): "
                       "disable it first, or pass --force", file=sys.stderr)
                 return 2
-            outcomes = restore(client, args.node, od, dry_run=args.dry_run, progress=progress, out=sys.stdout)
+            outcomes: list[Outcome] = []
+            try:
+                restore(client, args.node, od, dry_run=args.dry_run, progress=progress, out=sys.stdout,
+                        changes_only=args.changes_only, outcomes=outcomes)
+            except KeyboardInterrupt:
+                # A summary on every exit: what was done before Ctrl-C is what the drive holds.
+                progress.clear()
+                print(f"{prog}: interrupted: {_summary(outcomes)}"
+                      + (" (dry run)" if args.dry_run else ""), file=sys.stderr)
+                return 130
         print(f"{prog}: {_summary(outcomes)}" + (" (dry run)" if args.dry_run else ""), file=sys.stderr)
         return 1 if any(o.result == "refused" for o in outcomes) else 0
 

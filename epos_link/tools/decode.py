@@ -8,8 +8,10 @@ Standard input is decoded line by line as it arrives (a capture or hex), and
 (:mod:`epos_link.tools.follow`, bounded waits, ``--idle-exit``). Captures are
 decoded with names and values from the object dictionary
 (:mod:`epos_link.tools.frames`).
-Every frame gives one line; a frame with a bad CRC is still decoded and marked;
-bytes that are not a frame are reported, never dropped.
+Every frame gives one line, as ``monitor`` prints it
+(:func:`epos_link.tools.view.format_event`; a capture's lines with its
+timestamps); a frame with a bad CRC is still decoded and marked; bytes that
+are not a frame are reported, never dropped.
 """
 from __future__ import annotations
 
@@ -59,7 +61,7 @@ class Decoded:
     def as_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "direction": self.direction, "opcode": self.opcode, "name": self.name,
-            "node": self.node, "index": self.index, "subindex": self.subindex,
+            "node": self.node, "index": hex_index(self.index), "subindex": hex_subindex(self.subindex),
             "data": self.data.hex(), "error_code": self.error_code, "crc_ok": self.crc_ok,
         }
         if self.error_code is not None:
@@ -91,6 +93,16 @@ class Decoded:
 
 def _hex(data: bytes) -> str:
     return data.hex(" ").upper()
+
+
+def hex_index(index: Optional[int]) -> Optional[str]:
+    """JSON shows indexes as the text does, ``"0x6041"``: an index in decimal (24641)
+    is read by nobody."""
+    return None if index is None else f"0x{index:04X}"
+
+
+def hex_subindex(subindex: Optional[int]) -> Optional[str]:
+    return None if subindex is None else f"0x{subindex:02X}"
 
 
 def describe_frame(frame: Frame, direction: Optional[str],
@@ -232,6 +244,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eds", metavar="FILE",
                         help="object dictionary for names and values (default: the shipped EPOS4 EDS)")
     parser.add_argument("--json", action="store_true", help="one JSON object per frame")
+    parser.add_argument("-x", dest="hex_bytes", action="store_true", help="add the wire bytes in hex")
 
 
 class LineDecoder:
@@ -282,13 +295,31 @@ def _as_decoded(item: Any) -> Decoded:
     return item if isinstance(item, Decoded) else item.decoded
 
 
-def _text(item: Any) -> str:
-    if isinstance(item, Decoded):
-        return item.as_text()
-    text = item.decoded.as_text()
-    if item.obj is not None:
-        text += f"  # {item.obj.name}" + (f" = {item.value_text}" if item.value_text is not None else "")
-    return text
+class TextLines:
+    """Lines as ``monitor`` prints them (:func:`epos_link.tools.view.format_event`):
+    a capture's frames with their timestamps (zero-based, as the capture counts
+    them), bare hex without (it has no times), both with object names."""
+
+    def __init__(self, eds: Optional[str], hex_bytes: bool) -> None:
+        from .view import Clock, use_colour
+
+        self.eds = eds
+        self.hex_bytes = hex_bytes
+        self.clock = Clock("z")
+        self.colour = use_colour(sys.stdout)
+
+    def __call__(self, item: Any) -> str:
+        from .frames import FrameEvent
+        from .objects import load_directory
+        from .view import format_event
+
+        if isinstance(item, FrameEvent):
+            return format_event(item, self.clock, colour=self.colour, hex_bytes=self.hex_bytes)
+        event = FrameEvent(0.0, item.direction, item, node=item.node, index=item.index,
+                           subindex=item.subindex)
+        if item.index is not None:
+            event.obj = load_directory(self.eds).find(item.index, item.subindex or 0)
+        return format_event(event, None, colour=self.colour, hex_bytes=self.hex_bytes)
 
 
 def _lines(args: argparse.Namespace) -> Iterator[Any]:
@@ -298,6 +329,10 @@ def _lines(args: argparse.Namespace) -> Iterator[Any]:
     if args.follow:
         return follow_file(args.follow, idle_exit=args.idle_exit)
     path = args.file or (args.hex[0] if len(args.hex) == 1 and os.path.isfile(args.hex[0]) else None)
+    if not path and len(args.hex) == 1 and ("/" in args.hex[0] or "." in args.hex[0] or os.sep in args.hex[0]):
+        # Hex has no "/" or ".": this names a file that is not there, and
+        # "not hex bytes" would send the user the wrong way.
+        raise FileNotFoundError(f"{args.hex[0]}: no such file")
     if path:
         return follow_file(path, idle_exit=0.0)  # a plain read to the end, line by line
     if args.hex:
@@ -310,6 +345,7 @@ def run(args: argparse.Namespace) -> int:
 
     prog = "epos-link decode"
     decoder = LineDecoder(args.eds, args.responses)
+    text = TextLines(args.eds, args.hex_bytes)
     count = damaged = 0
 
     def emit(item: Any) -> None:
@@ -317,7 +353,7 @@ def run(args: argparse.Namespace) -> int:
         d = _as_decoded(item)
         count += 1
         damaged += bool(d.problem or d.crc_ok is False)
-        print(json.dumps(item.as_json()) if args.json else _text(item), flush=True)
+        print(json.dumps(item.as_json()) if args.json else text(item), flush=True)
 
     try:
         for line in _lines(args):

@@ -39,8 +39,8 @@ from ..messages import (
     SegmentWrite,
     WriteObject,
 )
-from .decode import Decoded, Pairing, StreamDecoder
-from .objects import ObjectDirectory, ObjectInfo, Value
+from .decode import Decoded, Pairing, StreamDecoder, hex_index, hex_subindex
+from .objects import ObjectDirectory, ObjectInfo, Value, meaning
 
 MAX_TRANSFER = 64 * 1024
 
@@ -60,6 +60,7 @@ class FrameEvent:
     value_text: Optional[str] = None
     latency: Optional[float] = None       # answers: seconds from the end of their request
     answers: Optional[str] = None         # answers: the name of the request answered
+    meaning: Optional[str] = None         # what the value means (objects.meaning): a CiA 402 state
 
     @property
     def raw(self) -> bytes:
@@ -79,13 +80,16 @@ class FrameEvent:
         out: dict[str, Any] = {"time": round(self.time if time_value is None else time_value, 6)}
         out.update(self.decoded.as_json())
         if self.node is not None and out.get("node") is None:
-            out["node"], out["index"], out["subindex"] = self.node, self.index, self.subindex
+            out["node"], out["index"], out["subindex"] = (self.node, hex_index(self.index),
+                                                          hex_subindex(self.subindex))
         if self.obj is not None:
             out["object"] = self.obj.name
             if self.obj.type is not None:
                 out["type"] = self.obj.type.name
         if self.value is not None:
             out["value"] = self.value.hex() if isinstance(self.value, bytes) else self.value
+        if self.meaning is not None:
+            out["meaning"] = self.meaning
         if self.answers is not None:
             out["answers"] = self.answers
         if self.latency is not None:
@@ -176,6 +180,10 @@ class LinkDecoder:
         except Exception:  # too few bytes for the type: show the hex only
             return
         event.value_text = typ.format(event.value)
+        note = meaning(event.index or 0, event.subindex or 0, event.value)
+        if note is not None:
+            event.value_text += f" [{note}]"
+            event.meaning = note
 
     def _annotate(self, time: float, direction: str, line: Decoded) -> FrameEvent:
         conv = self.conversation

@@ -17,7 +17,9 @@ Outputs: ``--record FILE`` writes the capture format that ``replay://`` and
 ``decode`` read; ``--pcapng FILE`` writes Wireshark's format, ``-`` to standard
 output (then the lines go to standard error), so that
 ``epos-link monitor URL --tcp :0 --pcapng - | wireshark -k -i -`` works;
-``--json`` prints one JSON object per frame instead of text.
+``--json`` prints one JSON object per frame instead of text. The
+``listening on ...`` line goes to standard error, so it shows when standard
+output is redirected.
 Stop with Ctrl-C (or SIGTERM); exit 0, or 2 when the device link failed.
 """
 from __future__ import annotations
@@ -150,7 +152,10 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
     try:
         device = open_transport(args.url, **({"baudrate": args.baud} if args.baud else {}))
     except (EposError, OSError) as exc:
-        print(f"{prog}: cannot open {args.url}: {exc}", file=sys.stderr)
+        # The transports' messages already name the URL ("cannot open /dev/ttyUSB0: ..."):
+        # say it once.
+        text = str(exc) if args.url in str(exc) else f"cannot open {args.url}: {exc}"
+        print(f"{prog}: {text}", file=sys.stderr)
         return 2
     try:
         front = TcpFront(*args.tcp) if args.tcp else PtyFront()
@@ -174,7 +179,10 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         signal.signal(signal.SIGINT, lambda *_: stop.set())
     proxy.start()
-    print(f"listening on {front.where}", file=text_out, flush=True)
+    # Standard error: the user needs this line when standard output is a file, a pipe
+    # or /dev/null (``monitor ... --record cap.txt > /dev/null &``), and --json output
+    # stays one JSON object per line.
+    print(f"listening on {front.where}", file=sys.stderr, flush=True)
     if ready is not None:
         ready.set()
     def handle(item: object) -> None:

@@ -304,6 +304,20 @@ class ObjectDirectory:
         return info
 
 
+STATUSWORD = 0x6041
+
+
+def meaning(index: int, subindex: int, value: Value) -> Optional[str]:
+    """What a value means beyond its number, where the profile says: the CiA 402
+    state and flags of a statusword (CiA 402-2 6.4.1.4). Every tool that shows
+    a value (read, monitor, decode) adds this, so a statusword never stands raw."""
+    if index == STATUSWORD and subindex == 0 and isinstance(value, int):
+        from ..cia402 import describe_statusword
+
+        return describe_statusword(value)
+    return None
+
+
 def default_eds() -> Path:
     """The EPOS4 EDS shipped in the package (the simulator's object dictionary)."""
     from importlib import resources
@@ -329,4 +343,4 @@ def load_directory(path: Optional[str] = None, node_id: int = 1) -> ObjectDirect
 
 
 __all__ = ["ObjectDirectory", "ObjectInfo", "ObjectLookupError", "TYPES", "TYPE_BY_CODE", "TYPE_NAMES",
-           "ValueType", "default_eds", "load_directory", "type_named"]
+           "ValueType", "default_eds", "load_directory", "meaning", "type_named"]

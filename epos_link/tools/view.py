@@ -85,11 +85,14 @@ def _object_text(event: FrameEvent) -> str:
     return text
 
 
-def format_event(event: FrameEvent, clock: Clock, *, colour: bool = False, hex_bytes: bool = False) -> str:
-    """One line for a frame or for bytes that are not a frame."""
+def format_event(event: FrameEvent, clock: Optional[Clock], *, colour: bool = False,
+                 hex_bytes: bool = False) -> str:
+    """One line for a frame or for bytes that are not a frame; ``monitor`` and ``decode``
+    both print this. ``clock`` None: bytes without times (``decode`` of bare hex), no
+    timestamp column."""
     d = event.decoded
     direction = event.direction or "--"
-    parts = [clock.text(event.time), direction]
+    parts = ([clock.text(event.time)] if clock is not None else []) + [direction]
     bad = event.faulty
     if d.opcode is None:
         parts.append(f"not a frame: {d.problem} [{d.raw.hex(' ').upper()}]")

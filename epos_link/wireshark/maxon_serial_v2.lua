@@ -14,6 +14,12 @@
 -- (the last request before it: the device answers one request at a time,
 -- guide 2.2.1) and is decoded with that request's answer layout.
 -- Baseline: Wireshark 4.0 (Lua 5.2, bit32).
+--
+-- Object names and typed values: `epos-link wireshark install` writes
+-- maxon_serial_v2.objects next to this file, generated from the EDS (the
+-- shipped EPOS4 EDS, or --eds FILE): a Lua table (index << 8 | subindex) ->
+-- {name, kind, size}. Not a .lua file, so Wireshark does not load it as a
+-- plugin of its own. Without it, objects are shown by index only.
 
 local maxon = Proto("maxon", "maxon EPOS4 MAXON SERIAL V2")
 
@@ -73,6 +79,72 @@ local nmt_commands = {
     [0x82] = "Reset communication",
 }
 
+-- The generated table of objects (see the head of this file), found next to this file.
+local objects = {}
+do
+    local info = debug and debug.getinfo and debug.getinfo(1, "S")
+    local source = info and info.source or ""
+    local dir = source:sub(1, 1) == "@" and source:sub(2):match("^(.*)[/\\]") or nil
+    if dir ~= nil then
+        local ok, t = pcall(dofile, dir .. "/maxon_serial_v2.objects")
+        if ok and type(t) == "table" then objects = t end
+    end
+end
+
+-- CiA 402-2 6.4.1.4 statusword state coding (mask, value, state), as epos_link/cia402.py.
+local sw_states = {
+    { 0x004F, 0x0000, "not ready to switch on" },
+    { 0x004F, 0x0040, "switch on disabled" },
+    { 0x006F, 0x0021, "ready to switch on" },
+    { 0x006F, 0x0023, "switched on" },
+    { 0x006F, 0x0027, "operation enabled" },
+    { 0x006F, 0x0007, "quick stop active" },
+    { 0x004F, 0x000F, "fault reaction active" },
+    { 0x004F, 0x0008, "fault" },
+}
+local sw_flags = {
+    { 0x0010, "voltage enabled" }, { 0x0080, "warning" }, { 0x0200, "remote" },
+    { 0x0400, "target reached" }, { 0x0800, "internal limit active" },
+    { 0x8000, "position referenced" },
+}
+
+local function statusword_text(sw)
+    local parts = { "no CiA 402 state" }
+    for _, s in ipairs(sw_states) do
+        if bit32.band(sw, s[1]) == s[2] then parts[1] = s[3]; break end
+    end
+    for _, fl in ipairs(sw_flags) do
+        if bit32.band(sw, fl[1]) ~= 0 then parts[#parts + 1] = fl[2] end
+    end
+    return table.concat(parts, ", ")
+end
+
+local function object_of(index, subindex)
+    return objects[index * 256 + subindex]
+end
+
+-- The value of an expedited transfer's data (up to 4 bytes, little-endian, padding
+-- after the type's size ignored), as epos-link prints it: "1000 (0x000003E8)".
+local function value_text(obj, range, index, subindex)
+    local kind, size = obj[2], obj[3]
+    if size == nil or size > 4 or range:len() < size then return nil end
+    local r = range(0, size)
+    local text
+    if kind == "u" or kind == "i" then
+        local v = kind == "u" and r:le_uint() or r:le_int()
+        local masked = bit32.band(v, size == 4 and 0xFFFFFFFF or (2 ^ (8 * size) - 1))
+        text = string.format("%d (0x%0" .. (2 * size) .. "X)", v, masked)
+        if index == 0x6041 and subindex == 0 then
+            text = text .. " [" .. statusword_text(masked) .. "]"
+        end
+    elseif kind == "f" and size == 4 then
+        text = string.format("%g", r:le_float())
+    elseif kind == "b" then
+        text = r:le_uint() ~= 0 and "true" or "false"
+    end
+    return text
+end
+
 local f = {
     sync = ProtoField.uint16("maxon.sync", "Sync (DLE STX)", base.HEX),
     opcode = ProtoField.uint8("maxon.opcode", "OpCode", base.HEX, opcodes),
@@ -95,6 +167,8 @@ local f = {
     request_in = ProtoField.framenum("maxon.request_in", "Request in frame", base.NONE, frametype.REQUEST),
     response_in = ProtoField.framenum("maxon.response_in", "Answer in frame", base.NONE, frametype.RESPONSE),
     time = ProtoField.double("maxon.time", "Time since request (s)"),
+    object = ProtoField.string("maxon.object", "Object"),
+    value = ProtoField.string("maxon.value", "Value"),
 }
 maxon.fields = f
 
@@ -174,6 +248,23 @@ local function address_text(node, index, subindex)
     return string.format("node %d 0x%04X/0x%02X", node, index, subindex)
 end
 
+-- The object's name (and the value in ``range``, if given) from the generated table;
+-- returns the text for the Info column.
+local function add_object(tree, index, subindex, range)
+    local obj = object_of(index, subindex)
+    if obj == nil then return "" end
+    tree:add(f.object, obj[1]):set_generated()
+    local text = " " .. obj[1]
+    if range ~= nil then
+        local v = value_text(obj, range, index, subindex)
+        if v ~= nil then
+            tree:add(f.value, v):set_generated()
+            text = text .. " = " .. v
+        end
+    end
+    return text
+end
+
 local function add_address(tree, body, off)
     tree:add(f.node, body(off, 1))
     tree:add_le(f.index, body(off + 1, 2))
@@ -189,8 +280,12 @@ local function dissect_request(opcode, data, tree, pinfo, info)
         info = info .. " " .. address_text(rec.node, rec.index, rec.subindex)
         if opcode == 0x68 and n >= 8 then
             tree:add(f.data, data(4, 4))
-            info = info .. " data " .. tostring(data(4, 4):bytes())
-        elseif opcode == 0x69 and n >= 8 then
+            info = info .. add_object(tree, rec.index, rec.subindex, data(4, 4))
+                .. " data " .. tostring(data(4, 4):bytes())
+        else
+            info = info .. add_object(tree, rec.index, rec.subindex, nil)
+        end
+        if opcode == 0x69 and n >= 8 then
             tree:add_le(f.write_length, data(4, 4))
         end
     elseif opcode == 0x62 and n >= 1 then
@@ -241,6 +336,9 @@ local function dissect_answer(req, data, tree, pinfo, info)
             tree:add(f.index, obj.index):set_generated()
             tree:add(f.subindex, obj.subindex):set_generated()
             info = info .. " " .. address_text(obj.node, obj.index, obj.subindex)
+            -- A ReadObject answer carries the value (guide 2.1.1.1): typed by the EDS.
+            local value = (req.opcode == 0x60 and code == 0 and n >= 8) and data(4, 4) or nil
+            info = info .. add_object(tree, obj.index, obj.subindex, value)
         end
     end
     info = info .. (code == 0 and ": ok" or string.format(": 0x%08X %s", code, error_names[code] or "unknown error"))

@@ -20,6 +20,8 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
 
+from epos_link.cia402 import describe_statusword
+
 from ..errors import DeviceFailure
 from .health import Silence
 from .shared_reads import NeedsBus
@@ -62,6 +64,25 @@ class NodeSilent(DeviceFailure):
 def object_type(index: int, subindex: int) -> Tuple[int, bool]:
     """(size, signed) of an object; unknown objects are 4 unsigned bytes."""
     return OBJECT_TYPES.get((index, subindex)) or OBJECT_TYPES.get((index, None)) or (4, False)
+
+
+def object_name(node: Any, index: int, subindex: int) -> str:
+    """`` Statusword``: the object's name for the debug log (command 91), from the
+    node's object dictionary, else the shipped EPOS4 EDS (CiA 402 names are the
+    profile's); empty when neither knows it. Called only with debug print on."""
+    try:
+        var = node.object_dictionary.get_variable(index, subindex)
+        if var is not None:
+            return f" {var.name}"
+    except Exception:  # no dictionary, or one of another shape: fall back
+        pass
+    try:
+        from epos_link.tools.objects import load_directory
+
+        name = load_directory().name_of(index, subindex)
+    except Exception:  # the shipped EDS is unreadable: the log line stays without
+        return ""
+    return f" {name}" if name else ""
 
 
 def encode(value: int, size: int, signed: bool) -> bytes:
@@ -178,7 +199,9 @@ class SdoPort:
         if value is None:
             return self.read(index, subindex)
         if self._debug():
-            log.info("%s PDO 0x%04X/%d = %d", self.name, index, subindex, value)
+            note = f" [{describe_statusword(value)}]" if (index, subindex) == (0x6041, 0) else ""
+            log.info("%s PDO 0x%04X/%d%s = %d%s", self.name, index, subindex,
+                     object_name(self.node, index, subindex), value, note)
         watcher = self._watchers.get((index, subindex))
         if watcher is not None:
             watcher(value)
@@ -251,5 +274,8 @@ class SdoPort:
         if not self._debug():
             return
         shown = "" if data is None else " " + data.hex(" ")
+        if data is not None and index == 0x6041 and subindex == 0 and len(data) >= 2:
+            shown += f" [{describe_statusword(int.from_bytes(data[:2], 'little'))}]"
         outcome = f" -> {type(exc).__name__}: {exc}" if exc is not None else ""
-        log.info("%s SDO %s 0x%04X/%d%s%s", self.name, what, index, subindex, shown, outcome)
+        log.info("%s SDO %s 0x%04X/%d%s%s%s", self.name, what, index, subindex,
+                 object_name(self.node, index, subindex), shown, outcome)
