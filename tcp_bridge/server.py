@@ -96,7 +96,8 @@ class ServerOptions:
         if self.max_per_host is None:
             self.max_per_host = default_max_per_host(self.max_connections)
         cap = self.max_per_host
-        if isinstance(cap, bool) or not isinstance(cap, int) or not 1 <= cap <= self.max_connections:
+        if isinstance(cap, bool) or not isinstance(cap, int) \
+                or not 1 <= cap <= self.max_connections:
             raise ValueError(f"max_per_host: must be an integer 1..{self.max_connections} "
                              f"(max_connections), not {cap!r}")
         if not self.active_window > 0:  # also refuses nan
