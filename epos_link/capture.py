@@ -19,6 +19,7 @@ and writes text streams handed to it and never looks at a clock.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import IO, Iterable, Iterator, Union
@@ -85,6 +86,8 @@ def parse_line(line: str, lineno: int = 0) -> Record | str | None:
         time = float(fields[0])
     except ValueError:
         raise CaptureFormatError(f"{where}bad time {fields[0]!r}") from None
+    if not math.isfinite(time):  # float() takes "nan" and "inf": no time of a recording
+        raise CaptureFormatError(f"{where}bad time {fields[0]!r}: not a finite number") from None
     try:
         direction = Direction(fields[1].upper())
     except ValueError:
