@@ -4,6 +4,7 @@
 
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
+                     [--max-per-host 32]
     tcp-bridge serve --simulate [--axes N]
     tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
