@@ -56,6 +56,9 @@ class Capture:
 
 
 EXCERPT = 40  # characters of a bad input quoted in an error message
+# The longest line the line readers hand on (tools/follow.py cuts a longer one, so
+# memory stays bounded on input without newlines); no record comes near it.
+MAX_LINE = 1 << 20
 
 
 def excerpt(text: str, limit: int = EXCERPT) -> str:

@@ -20,8 +20,8 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Iterator, Optional
 
-from ..capture import Capture, CaptureFormatError, Direction, Record, parse_hex, parse_line
-from .follow import MAX_LINE
+from ..capture import (MAX_LINE, Capture, CaptureFormatError, Direction, Record, parse_hex,
+                       parse_line)
 from ..codes import describe_error, opcode_name, OpCode
 from ..errors import CrcError, EposError, RemoteProtocolError
 from ..framing import NEED_DATA, Frame, FrameDecoder, encode_frame
