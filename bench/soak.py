@@ -101,7 +101,9 @@ class Server:
         self.log = tempfile.TemporaryFile(mode="w+")  # never a pipe that could fill up
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "tcp_bridge.cli", "serve", "--simulate", "--axes", str(axes),
-             "--port", "0", "--maintenance-port", "-1", "--max-connections", str(connections)],
+             "--port", "0", "--maintenance-port", "-1", "--max-connections", str(connections),
+             # every client of the soak is on this host: let it take every slot
+             "--max-per-host", str(connections)],
             stdout=subprocess.PIPE, stderr=self.log, text=True, cwd=ROOT)
         line = self.proc.stdout.readline()  # type: ignore[union-attr]
         if "listening on 127.0.0.1:" not in line:

@@ -19,6 +19,7 @@ and writes text streams handed to it and never looks at a clock.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import IO, Iterable, Iterator, Union
@@ -54,6 +55,20 @@ class Capture:
         return b"".join(r.data for r in self.records if r.direction is direction)
 
 
+EXCERPT = 40  # characters of a bad input quoted in an error message
+# The longest line the line readers hand on (tools/follow.py cuts a longer one, so
+# memory stays bounded on input without newlines); no record comes near it.
+MAX_LINE = 1 << 20
+
+
+def excerpt(text: str, limit: int = EXCERPT) -> str:
+    """``text`` quoted for an error message, cut to ``limit`` characters and its length
+    said: an error line stays one short line whatever the input (a 6 MB line, say)."""
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text)} characters)"
+
+
 def parse_hex(text: str) -> bytes:
     """Hex digits with optional blanks, ``0x`` prefixes, commas or colons between bytes."""
     cleaned = text.replace(",", " ").replace(":", " ")
@@ -66,7 +81,7 @@ def parse_hex(text: str) -> bytes:
     try:
         return bytes.fromhex(joined)
     except ValueError:
-        raise CaptureFormatError(f"not hex bytes: {text.strip()!r}") from None
+        raise CaptureFormatError(f"not hex bytes: {excerpt(text.strip())}") from None
 
 
 def parse_line(line: str, lineno: int = 0) -> Record | str | None:
@@ -80,15 +95,18 @@ def parse_line(line: str, lineno: int = 0) -> Record | str | None:
     fields = body.split(None, 2)
     where = f"line {lineno}: " if lineno else ""
     if len(fields) < 2:
-        raise CaptureFormatError(f"{where}expected 'TIME TX|RX HEX', got {stripped!r}")
+        raise CaptureFormatError(f"{where}expected 'TIME TX|RX HEX', got {excerpt(stripped)}")
     try:
         time = float(fields[0])
     except ValueError:
-        raise CaptureFormatError(f"{where}bad time {fields[0]!r}") from None
+        raise CaptureFormatError(f"{where}bad time {excerpt(fields[0])}") from None
+    if not math.isfinite(time):  # float() takes "nan" and "inf": no time of a recording
+        raise CaptureFormatError(f"{where}bad time {fields[0]!r}: not a finite number") from None
     try:
         direction = Direction(fields[1].upper())
     except ValueError:
-        raise CaptureFormatError(f"{where}direction must be TX or RX, got {fields[1]!r}") from None
+        raise CaptureFormatError(f"{where}direction must be TX or RX, got {excerpt(fields[1])}"
+                                 ) from None
     try:
         data = parse_hex(fields[2]) if len(fields) > 2 else b""
     except CaptureFormatError as exc:

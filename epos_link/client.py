@@ -36,7 +36,8 @@ out in silence (no byte at all came back) leaves the link "out of step": before
 the next request the client waits up to ``late_answer_timeout`` (default
 500 ms, the device's frame timeout) for that late answer and drops it. A
 timeout with garbage received means the answer came and was damaged, so there
-is nothing to wait for. A scan with a short per-node timeout therefore still
+is nothing to wait for; its :class:`EposTimeoutError` says so (``heard``), so a
+caller can tell a damaged answer from silence. A scan with a short per-node timeout therefore still
 costs, per absent node, the gateway's own SDO timeout.
 """
 from __future__ import annotations
@@ -270,7 +271,8 @@ class EposClient:
                     self._late_answer_due = not heard
                     raise EposTimeoutError(
                         f"{what or 'request'}: no answer within {timeout:g} s"
-                        + (f" ({held} bytes of an incomplete answer)" if held else ""))
+                        + (f" ({held} bytes of an incomplete answer)" if held else ""),
+                        heard=heard)
                 data = read(READ_CHUNK, left, min(decoder.wanted, first) if heard else first)
                 if data:
                     heard = True

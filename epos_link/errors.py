@@ -90,7 +90,16 @@ class DeviceError(EposError):
 
 
 class EposTimeoutError(EposError, TimeoutError):
-    """No complete, valid answer arrived before the deadline."""
+    """No complete, valid answer arrived before the deadline.
+
+    ``heard`` is True when bytes did come back but made no valid answer (a
+    damaged answer: its DLE STX or its length garbled), False for silence: a
+    caller may retry the one and fail fast on the other.
+    """
+
+    def __init__(self, message: str = "", *, heard: bool = False) -> None:
+        super().__init__(message)
+        self.heard = heard
 
 
 class TransportError(EposError, OSError):

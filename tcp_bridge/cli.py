@@ -4,6 +4,7 @@
 
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
+                     [--max-per-host 32]
     tcp-bridge serve --simulate [--axes N]
     tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
@@ -147,8 +148,11 @@ def _server_options(args: argparse.Namespace, settings: Settings) -> "ServerOpti
                           "(or [bridge] allow); --allow 0.0.0.0/0 allows any IPv4 host")
     ports = [args.port] + ([args.maintenance_port] if args.maintenance_port >= 0 else [])
     idle = settings.idle_timeout if settings.idle_timeout is not None else DEFAULT_IDLE_TIMEOUT
+    if args.max_per_host is not None and args.max_per_host > args.max_connections:
+        raise ConfigError(f"--max-per-host {args.max_per_host} is more than --max-connections "
+                          f"{args.max_connections}")
     return ServerOptions(host=args.bind, ports=ports, max_connections=args.max_connections,
-                         idle_timeout=idle, allow=allow)
+                         idle_timeout=idle, allow=allow, max_per_host=args.max_per_host)
 
 
 async def _serve(args: argparse.Namespace) -> int:
@@ -302,7 +306,12 @@ def parser() -> argparse.ArgumentParser:
                    help="maintenance port (default 1913; -1: none)")
     s.add_argument("--max-connections", type=positive_int, default=64, metavar="N",
                    help="simultaneous clients (default 64); when all are taken, a new "
-                        "client takes the slot of the one idle longest")
+                        "client takes the slot of one idle or silent longest, never of one "
+                        "that sent a request in the last 10 s")
+    s.add_argument("--max-per-host", type=positive_int, default=None, metavar="N",
+                   help="connections one client host may hold (default: half of "
+                        "--max-connections); at the cap its newcomers only displace its "
+                        "own idle connections")
     s.add_argument("--idle-timeout", type=positive_seconds, default=None, metavar="SECONDS",
                    help="close a connection that sent no request for this long; bytes that "
                         "do not complete a request do not count (default 60, or [bridge] "

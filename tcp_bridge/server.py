@@ -31,10 +31,25 @@ Connection slots cannot be held hostage (issue 12):
   about once a second while it moves and every few seconds at rest, so
   only a client that has stopped talking is closed, and EPICS (asyn) and
   NICOS reconnect by themselves if it ever happens;
-* **eviction**: with all ``max_connections`` slots taken, a new client takes
-  the slot of the connection that has been idle longest (waiting for its next
-  request, none in flight); the eviction is logged with both addresses. Only
-  when every connection has a request in flight is the new one refused.
+* **eviction** (issue 24): with all ``max_connections`` slots taken, a new
+  client may take the slot of a connection that is not *active*. Active means a
+  request in flight, or a request answered within the last ``active_window``
+  seconds (:data:`DEFAULT_ACTIVE_WINDOW`, 10 s: several polls of a client at rest,
+  see above). An active client is never evicted by a newcomer. Among the others
+  the one that has said nothing for longest goes first: the idle (requests, but
+  none lately) and the silent (connected, never a request; a newcomer of a burst
+  is one) are ranked together by the time of their last request, or of their
+  connection if they never sent one. A newcomer's own clock starts at connect,
+  but it is not protected by it: only a request makes a connection active, so a
+  burst of connections churns through its own slots and the slots of the idle,
+  never through a polling client's. When nobody can be evicted, the newcomer is
+  refused (closed unanswered): the newcomers themselves go last in line.
+* **per-host cap**: one client host (by IP address) holds at most
+  ``max_per_host`` connections (default: half of ``max_connections``, rounded
+  up). A newcomer from a host at its cap may only take the slot of that host's
+  own idle or silent connection, never another host's; so one host cannot take
+  every slot, and a burst from one host leaves the other hosts' slots alone.
+  Every eviction and refusal is logged with the addresses concerned.
 
 :meth:`BridgeServer.close` stops accepting, lets each request in flight
 finish and answer, closes the connections, then the engine (its bus workers
@@ -47,7 +62,7 @@ import logging
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Set, Tuple
 
-from .access import LOOPBACK, Network, describe, is_allowed
+from .access import LOOPBACK, Address, Network, client_address, describe, is_allowed
 from .engine import Engine
 from .errors import BridgeError
 from .wire import DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item
@@ -57,6 +72,7 @@ debug_log = logging.getLogger("tcp_bridge.debug")
 
 DEFAULT_PORTS: Tuple[int, int] = (1912, 1913)  # spec 2.1: TCP_PORT_NUM_1 / TCP_PORT_NUM_2
 DEFAULT_IDLE_TIMEOUT = 60.0  # seconds without a request; why 60: see the module docstring
+DEFAULT_ACTIVE_WINDOW = 10.0  # a request this recent protects a connection from eviction
 READ_SIZE = 4096
 
 
@@ -69,6 +85,29 @@ class ServerOptions:
     idle_timeout: Optional[float] = DEFAULT_IDLE_TIMEOUT  # None: never (tests, tools)
     close_grace: float = 10.0  # how long close() waits for requests in flight
     allow: Sequence[Network] = LOOPBACK  # client networks served (tcp_bridge.access)
+    max_per_host: Optional[int] = None  # None: half of max_connections, rounded up
+    active_window: float = DEFAULT_ACTIVE_WINDOW  # see the module docstring
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_connections, bool) or not isinstance(self.max_connections, int) \
+                or self.max_connections < 1:
+            raise ValueError(f"max_connections: must be a positive integer, not "
+                             f"{self.max_connections!r}")
+        if self.max_per_host is None:
+            self.max_per_host = default_max_per_host(self.max_connections)
+        cap = self.max_per_host
+        if isinstance(cap, bool) or not isinstance(cap, int) \
+                or not 1 <= cap <= self.max_connections:
+            raise ValueError(f"max_per_host: must be an integer 1..{self.max_connections} "
+                             f"(max_connections), not {cap!r}")
+        if not self.active_window > 0:  # also refuses nan
+            raise ValueError(f"active_window: must be a positive number of seconds, not "
+                             f"{self.active_window!r}")
+
+
+def default_max_per_host(max_connections: int) -> int:
+    """Half the slots, rounded up: one host cannot take them all (unless there is one)."""
+    return (max_connections + 1) // 2
 
 
 class _Connection:
@@ -77,8 +116,10 @@ class _Connection:
         self.task = task
         self.writer = writer
         self.peer = writer.get_extra_info("peername")
+        self.host: Optional[Address] = client_address(self.peer)  # for the per-host cap
         self.busy = False  # a request in flight: never evicted, never idle
-        self.waiting = False  # waiting for bytes between requests: may be evicted
+        self.waiting = False  # waiting for bytes between requests
+        self.spoke = False  # has sent a request that parsed (see _evictable)
         self.last_request = now  # loop time of the last complete request (or connect)
         self.watchdog: Optional[asyncio.TimerHandle] = None  # the idle timeout
 
@@ -118,7 +159,8 @@ class BridgeServer:
     # -- admission ---------------------------------------------------------------------
 
     def _admit(self, peer: object) -> bool:
-        """Allow-list, then a free slot (evicting the longest idle); False: close unanswered."""
+        """Allow-list, the per-host cap, then a free slot (evicting if need be, see the
+        module docstring); False: close unanswered."""
         if not is_allowed(peer, self.options.allow):
             log.warning("refused connection from %s: not in the allow-list (%s)", peer,
                         describe(self.options.allow))
@@ -126,17 +168,38 @@ class BridgeServer:
         if self._closing:
             log.info("refused connection from %s: shutting down", peer)
             return False
+        host = client_address(peer)
+        same_host = [c for c in self._connections if c.host == host]
+        cap = self.options.max_per_host
+        assert cap is not None  # set by ServerOptions.__post_init__
+        if len(same_host) >= cap:
+            # Evicting its own host's connection keeps the total unchanged too.
+            return self._make_room(peer, same_host, f"its host already holds {cap} connections "
+                                   f"(the per-host cap)")
         if len(self._connections) < self.options.max_connections:
             return True
-        idle = [c for c in self._connections if c.waiting and not c.busy]
-        if not idle:
-            log.warning("refused connection from %s: all %d connections have a request in "
-                        "flight", peer, self.options.max_connections)
+        return self._make_room(peer, list(self._connections),
+                               f"all {self.options.max_connections} connections are taken")
+
+    def _evictable(self, conn: _Connection, now: float) -> bool:
+        """Not active: no request in flight, and none answered within ``active_window``."""
+        if conn.busy:
             return False
-        victim = min(idle, key=lambda c: c.last_request)
+        return not conn.spoke or now - conn.last_request >= self.options.active_window
+
+    def _make_room(self, peer: object, among: List[_Connection], why: str) -> bool:
+        """Evict the connection of ``among`` that has said nothing for longest, unless
+        every one is active; False: ``peer`` is refused."""
         now = asyncio.get_running_loop().time()
-        log.warning("connection limit (%d) reached: closing %s, idle for %.1f s, to serve %s",
-                    self.options.max_connections, victim.peer, now - victim.last_request, peer)
+        candidates = [c for c in among if self._evictable(c, now)]
+        if not candidates:
+            log.warning("refused connection from %s: %s, and each is active (a request in "
+                        "flight or answered within %g s)", peer, why, self.options.active_window)
+            return False
+        victim = min(candidates, key=lambda c: c.last_request)
+        log.warning("%s: closing %s, %s for %.1f s, to serve %s", why, victim.peer,
+                    "idle" if victim.spoke else "silent since it connected",
+                    now - victim.last_request, peer)
         self._connections.discard(victim)  # the slot is free now; the task closes it
         victim.task.cancel()
         return True
@@ -229,9 +292,11 @@ class BridgeServer:
                 finally:
                     conn.busy = False
                 if valid:
-                    # Only a request resets the idle clock (issue 12): bytes or
-                    # junk lines trickled to hold the slot do not.
+                    # Only a request resets the idle clock (issue 12) and makes the
+                    # connection active (issue 24): bytes or junk lines trickled to
+                    # hold the slot do not.
                     conn.last_request = loop.time()
+                    conn.spoke = True
                 if not writer.is_closing():
                     writer.write(reply)
                 if self._closing:

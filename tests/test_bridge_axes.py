@@ -197,6 +197,50 @@ def test_damaged_state_file_is_refused(tmp_path: Path, content: str) -> None:
         ParameterStore(AxisTable.from_mapping(table()), path)
 
 
+def state(parameters: str, factor: int = 1000) -> str:
+    return ('{"format": "tcp-bridge-state", "version": 1, "axes": {"1": {"position_factor": '
+            f'{factor}, "parameters": {{{parameters}}}}}}}}}')
+
+
+@pytest.mark.parametrize("content,why", [
+    (b"\xff", "not UTF-8 text: byte 0xFF at offset 0"),
+    (b'{"format": "tcp-bridge-state"\xe9}', "not UTF-8 text: byte 0xE9 at offset 29"),
+    # Issue 24: a value is checked as in an S command; 23 (limit +) is scaled, INTEGER32.
+    (state('"23": 100000000000000000000000000000').encode(), "is outside INTEGER32"),
+    (state('"23": 1e29').encode(), "bad entry 23=1e+29"),  # a number, not an integer
+    (state('"22": 5').encode(), "22=5: command 22 (Axis Inversion): 5 is not one of [-1, 1]"),
+    (state('"4": true').encode(), "bad entry 4=True"),  # JSON true is not the integer 1
+    (state('"31": 7').encode(), "is not one of [1, 2, 3]"),
+    (state('"5": 2147483648').encode(), "is outside INTEGER32"),
+])
+def test_a_state_file_value_is_checked_as_in_an_s_command(tmp_path: Path, content: bytes,
+                                                           why: str) -> None:
+    path = tmp_path / "s.json"
+    path.write_bytes(content)
+    with pytest.raises(ConfigError, match="damaged") as info:
+        ParameterStore(AxisTable.from_mapping(table()), path)
+    assert why in str(info.value) and "\n" not in str(info.value)
+
+
+def test_the_extremes_of_a_parameter_load(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    path.write_text(state('"5": 2147483647, "22": -1, "25": -2147483648, "80": 1614872578'))
+    store = ParameterStore(AxisTable.from_mapping(table()), path)
+    assert [store.get(1, c) for c in (5, 22, 25, 80)] == [2**31 - 1, -1, -2**31, 0x60410002]
+
+
+def test_serve_with_a_state_file_that_is_not_utf8_is_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    path.write_bytes(b"\xff")
+    proc = subprocess.run([sys.executable, "-m", "tcp_bridge.cli", "serve", "--simulate",
+                           "--state-file", str(path), "--port", "0", "--maintenance-port", "-1"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"tcp-bridge: state file {path} is damaged (not UTF-8 text: byte 0xFF at offset 0); "
+        "move it away to start from the axis table"]
+
+
 def test_atomic_write_keeps_old_content_on_failure(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "f.json"
     write_atomically(path, "old")

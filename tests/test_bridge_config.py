@@ -52,7 +52,30 @@ MISTAKES = {
     "allow_not_a_network": ('[bridge]\nallow = ["10.0.0.300/8"]\n' + GOOD_BUS + GOOD_AXIS,
                             "[bridge]: allow: '10.0.0.300/8' is not a network in CIDR notation"),
     "bus_option_of_the_wrong_type": ('[bus.can1]\nbackend = "sim"\ntimeout = "fast"\n'
-                                     + GOOD_AXIS, "[bus.can1]: could not convert string"),
+                                     + GOOD_AXIS, "[bus.can1]: timeout: must be a positive "
+                                     "number of seconds, not str 'fast'"),
+    # Issue 24: each names its key; bitrate used to start a server (python-can's
+    # virtual interface ignores it).
+    "epos_timeout": ('[bus.can1]\nbackend = "epos"\nurl = "sim://"\ntimeout = "slow"\n'
+                     + GOOD_AXIS, "[bus.can1]: timeout: must be a positive number of seconds"),
+    "epos_baudrate": ('[bus.can1]\nbackend = "epos"\nurl = "/dev/ttyACM0"\nbaudrate = "fast"\n'
+                      + GOOD_AXIS, "[bus.can1]: baudrate: must be a positive integer (bit/s), "
+                      "not str 'fast'"),
+    "epos_retries": ('[bus.can1]\nbackend = "epos"\nurl = "sim://"\nretries = -1\n'
+                     + GOOD_AXIS, "[bus.can1]: retries: must be an integer, 0 or more, not"),
+    "epos_gateway": ('[bus.can1]\nbackend = "epos"\nurl = "sim://"\ngateway_node_id = 128\n'
+                     + GOOD_AXIS, "[bus.can1]: gateway_node_id: must be a node id 1..127"),
+    "sim_baud": ('[bus.can1]\nbackend = "sim"\nbaud = "x"\n' + GOOD_AXIS,
+                 "[bus.can1]: baud: must be a positive integer (bit/s), not str 'x'"),
+    "canopen_bitrate": ('[bus.can1]\nbackend = "canopen"\ninterface = "virtual"\nchannel = "t"\n'
+                        'bitrate = "fast"\n' + GOOD_AXIS,
+                        "[bus.can1]: bitrate: must be a positive integer (bit/s), not str 'fast'"),
+    "canopen_bitrate_float": ('[bus.can1]\nbackend = "canopen"\ninterface = "virtual"\n'
+                              'bitrate = 5e5\n' + GOOD_AXIS, "[bus.can1]: bitrate: must be a"),
+    "canopen_sdo_timeout": ('[bus.can1]\nbackend = "canopen"\ninterface = "virtual"\n'
+                            'sdo_timeout = true\n' + GOOD_AXIS,
+                            "[bus.can1]: sdo_timeout: must be a positive number of seconds, "
+                            "not the boolean true"),
     "state_file_unwritable": ('[bridge]\nstate_file = "blocker/state.json"\n' + GOOD_BUS
                               + GOOD_AXIS, "[bridge] state_file: "),
 }
@@ -141,3 +164,13 @@ def test_any_axis_row_gives_a_table_or_config_error(row: Dict[str, Any]) -> None
         AxisTable.from_mapping(doc, source="fuzz.toml")
     except ConfigError as exc:
         assert "\n" not in str(exc) and str(exc).startswith("fuzz.toml: ")
+
+
+def test_bus_option_types_check_only_what_they_know() -> None:
+    from tcp_bridge.tables.bus_options import option_problem
+
+    assert option_problem("epos", "timeout", 0.5) is None and option_problem("epos", "timeout", 1) is None
+    assert option_problem("epos", "timeout", float("nan")) == "must be a positive number of seconds"
+    assert option_problem("canopen", "channel", 0) is None  # python-can's own (kvaser: an int)
+    assert option_problem("canopen", "bitrate", 500000) is None
+    assert option_problem("somebody_elses", "bitrate", "fast") is None  # an entry point's backend

@@ -310,7 +310,7 @@ def test_connection_limit_all_busy_refuses_the_new_client() -> None:
             gate.wait(30)  # a transfer in flight until the test lets it go
             return super().upload(index, subindex)
 
-    r = Running(Engine(table, {1: HeldNode(1)}), max_connections=2)
+    r = Running(Engine(table, {1: HeldNode(1)}), max_connections=2, max_per_host=2)
     try:
         a, b = r.connect(), r.connect()
         a.sendall(b"1R10\r")
@@ -330,18 +330,20 @@ def test_connection_limit_all_busy_refuses_the_new_client() -> None:
 
 
 def test_connection_limit_evicts_the_longest_idle(caplog: pytest.LogCaptureFixture) -> None:
-    r = Running(make_engine(), max_connections=2)
+    # active_window 0.3 s: a connection whose last request is older is idle, evictable.
+    r = Running(make_engine(), max_connections=2, max_per_host=2, active_window=0.3)
     try:
         with caplog.at_level(logging.WARNING, logger="tcp_bridge.server"):
             old, recent = r.connect(), r.connect()
             assert exchange(old, b"1R86") and exchange(recent, b"1R86")
-            assert exchange(recent, b"1R86")  # old is now the one idle longest
+            time.sleep(0.4)  # both idle now
+            assert exchange(recent, b"1R86")  # recent is active again; old is idle longest
             with r.connect() as new:
                 assert exchange(new, b"1R86") == [named("1 R 86=0", Status.ACK)]
                 old.settimeout(10)
                 assert old.recv(100) == b""  # evicted
                 assert exchange(recent, b"1R86") == [named("1 R 86=0", Status.ACK)]
-        assert "closing ('127.0.0.1', %d)" % old.getsockname()[1] in caplog.text
+        assert "closing ('127.0.0.1', %d), idle for" % old.getsockname()[1] in caplog.text
         old.close()
         recent.close()
     finally:
@@ -443,7 +445,7 @@ def test_pipelined_requests_of_a_vanished_client_are_dropped(caplog: pytest.LogC
     table = AxisTable.from_mapping({"bridge": FAST, "bus": {"can1": {"backend": "instant"}},
                                     "axis": [{"node_id": 1}]})
     node = FirstHeldNode(1)
-    r = Running(Engine(table, {1: node}), max_connections=2)
+    r = Running(Engine(table, {1: node}), max_connections=2, max_per_host=2)
     try:
         with caplog.at_level(logging.INFO, logger="asyncio"):
             for _ in range(3):

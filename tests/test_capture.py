@@ -49,3 +49,16 @@ def test_bad_lines_name_their_number(line: str) -> None:
 
 def test_empty_capture() -> None:
     assert read_capture("") == Capture()
+
+
+def test_an_error_quotes_at_most_40_characters_of_the_input() -> None:
+    from epos_link.capture import CaptureFormatError, excerpt, parse_hex, parse_line
+
+    assert excerpt("short") == "'short'"
+    assert excerpt("x" * 41) == f"{'x' * 40!r}... (41 characters)"
+    for bad in (lambda: parse_hex("Z" * 10**6), lambda: parse_line("0 TX " + "Z" * 10**6, 3),
+                lambda: parse_line("Z" * 10**6, 3), lambda: parse_line("1 " + "Q" * 10**6, 3),
+                lambda: parse_line("N" * 10**6 + " TX 90", 3)):
+        with pytest.raises(CaptureFormatError) as info:
+            bad()
+        assert len(str(info.value)) < 120 and "(1000000 characters)" in str(info.value)

@@ -93,3 +93,32 @@ def test_a_missing_file_is_named_as_such(name: str) -> None:
     out = decode(name)
     assert out.returncode == 2
     assert out.stderr == f"epos-link decode: {name}: no such file\n"
+
+
+# Issue 24: a 6 MB line gave a 1 MiB error line. Cut at 1 MiB to bound memory
+# (epos_link/tools/follow.py), its error quotes 40 characters and says the length.
+SIX_MB = 3_000_000
+
+
+@pytest.mark.parametrize("text,message", [
+    ("ZZ" * SIX_MB, "not hex bytes: 'ZZZZ"),  # not hex
+    ("0.0 TX " + "ZZ" * SIX_MB, "line 1: longer than 1048576 characters, which no capture "
+                                "record is"),
+    ("0.0 TX " + "AB" * SIX_MB, "line 1: longer than 1048576 characters"),  # hex, but too long
+    ("0.0 TX 90 02\n1.0 RX " + "A" * SIX_MB, "line 2: longer than 1048576 characters"),
+])
+@pytest.mark.parametrize("how", ["stdin", "file"])
+def test_a_6_mb_line_gives_a_short_error_line(tmp_path: Path, text: str, message: str,
+                                              how: str) -> None:
+    path = tmp_path / "big.txt"
+    path.write_text(text + "\n")
+    p = decode("-f", str(path)) if how == "file" else decode(stdin=text + "\n")
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and len(lines[0]) < 200 and message in lines[0], lines[0][:300]
+
+
+def test_a_hex_line_of_6_mb_is_decoded_across_the_cut() -> None:
+    p = decode(stdin="90 02 " + "AB" * SIX_MB + "\n")
+    assert p.returncode == 1 and "Traceback" not in p.stderr  # junk, reported, bounded
+    assert max(len(line) for line in p.stdout.splitlines()) < 4000

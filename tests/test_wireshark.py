@@ -62,6 +62,47 @@ def test_export_usage_errors(tmp_path: Path) -> None:
     assert p.returncode == 2 and "not a capture file" in p.stderr
 
 
+READ = "TX 90 02 60 02 01 B0 30 00 2E 62"  # guide 2.2.9 Table 2-5
+
+
+@pytest.mark.parametrize("time,message", [
+    ("nan", "line 1: bad time 'nan': not a finite number"),
+    ("inf", "line 1: bad time 'inf': not a finite number"),
+    ("-inf", "line 1: bad time '-inf': not a finite number"),
+    ("1e300", "a record at 1e+300 s is farther from the capture's start than a pcapng "
+              "timestamp reaches"),
+    ("-1e300", "a record at -1e+300 s is farther"),
+])
+def test_export_of_a_time_pcapng_cannot_hold_is_one_line(tmp_path: Path, time: str,
+                                                          message: str) -> None:
+    capture = tmp_path / "c.txt"
+    capture.write_text(f"{time} {READ}\n")
+    p = cli("export", str(capture), "-o", str(tmp_path / "x.pcapng"))
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and message in p.stderr
+
+
+@pytest.mark.parametrize("start", ["# start: nan", "# start: inf", "# start: x", ""])
+def test_export_falls_back_to_the_files_time_for_a_start_that_is_no_time(
+        tmp_path: Path, start: str) -> None:
+    capture = tmp_path / "c.txt"
+    capture.write_text(f"{start}\n0.5 {READ}\n")
+    os.utime(capture, (1_700_000_000.5, 1_700_000_000.5))
+    p = cli("export", str(capture), "-o", str(tmp_path / "x.pcapng"))
+    assert p.returncode == 0, p.stderr
+    _, packets = read_pcapng((tmp_path / "x.pcapng").read_bytes())
+    assert [p.time_ns for p in packets] == [1_700_000_000_500_000_000]  # the file's mtime
+
+
+def test_export_start_past_the_year_2554_is_one_line(tmp_path: Path) -> None:
+    capture = tmp_path / "c.txt"
+    capture.write_text(f"0.5 {READ}\n")
+    for args in (["--start", "1e300"], ["--start", "18446744074"]):
+        p = cli("export", str(capture), "-o", str(tmp_path / "x.pcapng"), *args)
+        assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+        assert "past what a pcapng timestamp holds (2**64 ns, the year 2554)" in p.stderr
+
+
 def test_lua_error_names_match_the_guide_table() -> None:
     lua = dissector_path().read_text()
     names = {int(code, 16): name for code, name in re.findall(r'\[0x([0-9A-F]{8})\] = "([^"]+)"', lua)}

@@ -22,7 +22,8 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Iterator, Optional
 
-from ..capture import Capture, CaptureFormatError, Direction, Record, parse_hex, parse_line
+from ..capture import (MAX_LINE, Capture, CaptureFormatError, Direction, Record, parse_hex,
+                       parse_line)
 from ..codes import describe_error, opcode_name, OpCode
 from ..errors import CrcError, EposError, RemoteProtocolError
 from ..framing import NEED_DATA, Frame, FrameDecoder, encode_frame
@@ -279,6 +280,12 @@ class LineDecoder:
         if self.mode == "hex":
             yield from self.stream.feed(parse_hex(body), self.pair)
             return
+        if len(text) >= MAX_LINE:
+            # follow.py cuts a longer line to bound memory; hex continues across
+            # the cut, a capture record cannot (no record is that long: one read
+            # or write each).
+            raise CaptureFormatError(f"line {self.lineno}: longer than {MAX_LINE} characters, "
+                                     "which no capture record is")
         record = parse_line(text, self.lineno)
         if isinstance(record, Record):
             self.last_time = record.time

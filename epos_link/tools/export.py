@@ -12,6 +12,7 @@ Open the result with the dissector of ``epos-link wireshark path``.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -23,6 +24,9 @@ from .frames import FrameEvent, LinkDecoder
 from .pcapng import PcapngWriter
 
 DEFAULT_BAUD = 115200  # guide 2.2.6: the RS232 default
+# pcapng (IETF draft-ietf-opsawg-pcapng, 4.3): a timestamp is 64 bits of units since
+# 1970; our writer's unit is the nanosecond (if_tsresol 9).
+PCAPNG_TIME_LIMIT_NS = 2 ** 64
 
 
 def capture_field(capture: Capture, key: str) -> Optional[str]:
@@ -113,13 +117,27 @@ def run(args: argparse.Namespace) -> int:
         baud = int(text) if text and text.isdigit() else None
     if baud is None and url and "://" not in url:
         baud = DEFAULT_BAUD  # a serial device path: the guide's default rate
+    span = PCAPNG_TIME_LIMIT_NS / 1e9  # seconds, about 584 years
+    far = next((r.time for r in capture.records if not abs(r.time) < span), None)
+    if far is not None:
+        print(f"{prog}: {args.capture}: a record at {far:g} s is farther from the capture's "
+              f"start than a pcapng timestamp reaches (2**64 ns, 584 years)", file=sys.stderr)
+        return 2
     start = args.start
     if start is None:
         text = capture_field(capture, "start")
         try:
-            start = float(text.split()[0]) if text else mtime - capture.records[-1].time
+            start = float(text.split()[0]) if text else math.nan
         except ValueError:
+            start = math.nan
+        if not math.isfinite(start):  # none, garbage, "nan" or "inf": the file's own time
             start = mtime - capture.records[-1].time
+    latest = start + max(record.time for record in capture.records)
+    if not latest * 1e9 < PCAPNG_TIME_LIMIT_NS:
+        print(f"{prog}: {args.capture}: a record at Unix time {latest:g} is past what a pcapng "
+              f"timestamp holds (2**64 ns, the year 2554); --start sets the time of 0",
+              file=sys.stderr)
+        return 2
     try:
         if args.output == "-":
             count = export(capture, sys.stdout.buffer, url=url, baud=baud, start_wall=start)

@@ -22,10 +22,11 @@ import select
 import time
 from typing import Callable, Iterator, Optional, Union
 
+from ..capture import MAX_LINE
+
 RESTART = object()
 """Yielded by :func:`follow_file` when the file was truncated or replaced."""
 
-MAX_LINE = 1 << 20
 
 Line = Union[str, object]
 

@@ -14,7 +14,9 @@ A probe reads object 1000h/00h (device type, mandatory for every CANopen
 device: CiA 301 7.5.2.1): of the node for a silent node; for the bus's device,
 the backend's own ``probe()`` if it has one (``epos``: the EPOS4 itself,
 node 0 on its link, with a short timeout and no retry), else of the bus's first
-node, where any answer, an abort included, proves the link works. Probes
+node, where any answer, an abort included, proves the link works. A garbled
+answer to a probe is tried again, as a transfer's is
+(:func:`~tcp_bridge.bus.sdo.retry_garbled`). Probes
 bypass the axes' SdoPorts, so they never feed the CiA 402 state of an axis.
 """
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Any, Callable, Mapping, Optional
 
 from ..errors import SilentLink
 from .health import BusHealth, Change, Silence, Target
-from .sdo import _is_device_error, silence_of
+from .sdo import _is_device_error, retry_garbled, silence_of
 
 log = logging.getLogger(__name__)
 
@@ -94,13 +96,16 @@ class BusGuard:
         return self.health.next_due()
 
     def _probe(self, target: Target) -> "tuple[Optional[Silence], str]":
-        try:
+        def probe() -> None:
             if target is not None:
                 self.nodes[target].sdo.upload(DEVICE_TYPE, 0)
             elif self._link_probe is not None:
                 self._link_probe()
             elif self.nodes:
                 next(iter(self.nodes.values())).sdo.upload(DEVICE_TYPE, 0)
+
+        try:
+            retry_garbled(probe)  # a garbled answer is no silence (tcp_bridge.bus.sdo)
         except Exception as exc:
             if not _is_device_error(exc):
                 # A bug, not a device answer: keep the link closed and say so.

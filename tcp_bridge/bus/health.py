@@ -18,6 +18,10 @@ Two kinds of silence, told apart by who failed to answer
   (canopen). The link works; an absent node behind a healthy gateway is this,
   never a silent bus, and it does not close the bus to the other nodes.
 
+A garbled answer is neither: the device answered through noise, and the
+transfer is tried again (:func:`tcp_bridge.bus.sdo.retry_garbled`); only a
+transfer whose every try was garbled reaches this module, as the device's silence.
+
 Each link (the bus's device, each node) is ANSWERING, SUSPECT or SILENT:
 
 * ANSWERING -> SUSPECT when a transfer ended in its silence (the client

@@ -14,11 +14,27 @@ back unsigned), turns every failure into :class:`~tcp_bridge.errors.DeviceFailur
 (answered NAK), and logs each transfer when command 91 "debug print" is on. It
 tells its observer the outcome of every transfer, and :func:`silence_of` tells a
 silent bus's device from a silent node (fail-fast buses, :mod:`tcp_bridge.bus.health`).
+
+A garbled answer is not silence (issue 24): a CRC error, a frame cut short, or
+bytes that never made an answer (:func:`garbled`) prove the device is there and
+answered; the noise was on the wire. So, as the ``epos_link`` client retries it
+(its ``retries``, a bus option), the port tries such a transfer again, up to
+:data:`GARBLED_RETRIES` more times, and the probes of :mod:`tcp_bridge.bus.failfast`
+do the same. A silent device (a timeout with no byte back, a link failure) gets
+no extra try: fail-fast is kept for a device that really says nothing. A
+transfer whose every try was garbled counts as the device's silence: a link
+that garbles everything is as unusable as a silent one.
+
+Repeating a transfer whose answer was garbled repeats one the device has
+executed, which the client already does once: a read is harmless; a write
+stores the same value again, and a CiA 402 command acts on the state machine's
+current state or on an edge of a controlword bit (CiA 402-2 6.3.1, 6.7.1), which the
+same word written twice does not make.
 """
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple
+from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple, TypeVar
 
 from epos_link.cia402 import describe_statusword
 
@@ -27,6 +43,7 @@ from .health import Silence
 from .shared_reads import NeedsBus
 
 log = logging.getLogger("tcp_bridge.bus.sdo")
+T = TypeVar("T")
 
 # (size in bytes, signed) by (index, subindex); subindex None = every subindex.
 # Sources: CiA 301 V4.2 7.5.2 (1001h, 1016h), CiA 402-2 V4.0 object descriptions;
@@ -119,6 +136,44 @@ def silence_of(exc: BaseException) -> Optional[Silence]:
     return None
 
 
+# With 5% of reply bytes corrupted, half the 14-byte ReadObject answers are
+# garbled (1 - 0.95**14); the client's two tries then fail together one time in
+# four (0.51**2). Three more transfers, eight tries in all, leave one read in
+# 200 (0.51**8 = 0.005); each garbled try costs one exchange, or the client's
+# timeout when the garbling hid the answer's length (guide 2.2.7: 500 ms).
+GARBLED_RETRIES: Final = 3
+
+
+def garbled(exc: BaseException) -> bool:
+    """True if ``exc`` (or what it wraps) is a damaged answer: an ``epos_link``
+    ``RemoteProtocolError``, or a timeout after bytes that made no answer."""
+    seen = 0
+    cause: Optional[BaseException] = exc
+    while cause is not None and seen < 8:  # the adapter wraps the client's error (from exc)
+        names = {cls.__name__ for cls in type(cause).__mro__}
+        if "RemoteProtocolError" in names:
+            return True
+        if "EposTimeoutError" in names:
+            return bool(getattr(cause, "heard", False))
+        seen += 1
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
+def retry_garbled(transfer: Callable[[], T], on_garbled: Callable[[Exception], None]
+                  = lambda exc: None) -> T:
+    """``transfer()``, tried again after a garbled answer, up to :data:`GARBLED_RETRIES`
+    times (``on_garbled`` is told each); any other failure is raised at once."""
+    for attempt in range(GARBLED_RETRIES + 1):
+        try:
+            return transfer()
+        except Exception as exc:
+            if attempt == GARBLED_RETRIES or not garbled(exc):
+                raise
+            on_garbled(exc)
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
 def _is_device_error(exc: BaseException) -> bool:
     # canopen.SdoError (aborts, timeouts), python-can errors, OS errors, and
     # whatever an SDO adapter raises for a failed transfer (epos_link errors).
@@ -155,7 +210,8 @@ class SdoPort:
         if self._pdo_only:
             raise NeedsBus(f"0x{index:04X}/{subindex}")
         try:
-            data = bytes(self.node.sdo.upload(index, subindex))
+            data = retry_garbled(lambda: bytes(self.node.sdo.upload(index, subindex)),
+                                 lambda exc: self._trace("upload", index, subindex, None, exc))
         except Exception as exc:
             self._transferred((index, subindex))
             self._trace("upload", index, subindex, None, exc)
@@ -169,7 +225,8 @@ class SdoPort:
         if self._pdo_only:
             raise NeedsBus(f"0x{index:04X}/{subindex}")
         try:
-            self.node.sdo.download(index, subindex, bytes(data))
+            retry_garbled(lambda: self.node.sdo.download(index, subindex, bytes(data)),
+                          lambda exc: self._trace("download", index, subindex, data, exc))
         except Exception as exc:
             self._transferred(None)  # it may have arrived
             self._trace("download", index, subindex, data, exc)

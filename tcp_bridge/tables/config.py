@@ -31,6 +31,7 @@ from .axes import (BUS_NAMES, DEVICE_NAMES, IPR_KEY, PARAMETER_NAMES, PARAMETER_
                    AxisConfig, AxisTable, BusConfig, BusOffset, ConfigError, DeviceCode,
                    Settings, parameter_spec, to_stored)
 from ..errors import InvalidCommand
+from .bus_options import option_problem
 from .units import Number, parse_value
 
 if sys.version_info >= (3, 11):
@@ -145,6 +146,10 @@ def _buses(value: Any, source: str) -> Dict[str, BusConfig]:
         backend = opts.pop("backend", None)
         if not isinstance(backend, str):
             raise ConfigError(f"{where}: backend: needs backend = \"canopen\"|\"epos\"|\"sim\"")
+        for key, value in opts.items():
+            problem = option_problem(backend, key, value)
+            if problem:
+                raise ConfigError(f"{where}: {key}: {problem}, not {_shown(value)}")
         buses[name] = BusConfig(name, backend, MappingProxyType(opts))
     return buses
 

@@ -17,7 +17,10 @@ shutdown) writes the last one.
 
 The state file is checked at start-up: one that cannot be written (its
 directory cannot be created, no rights, not a regular file) is refused with
-:class:`~tcp_bridge.tables.axes.ConfigError`. One that becomes unwritable later (disk
+:class:`~tcp_bridge.tables.axes.ConfigError`, and so is a damaged one (not
+UTF-8, not JSON, not our format, or a value its parameter cannot hold: each is
+checked as the same value in an S command is), with one line that names the
+file and says to move it away. One that becomes unwritable later (disk
 full, directory gone) does not undo the change and does not turn the reply into NAK: the value is
 in the arrays, and for a drive parameter in the drive, so the command *was*
 executed (spec 2.2.2: NAK means not executed). The failure is logged at
@@ -29,14 +32,16 @@ from __future__ import annotations
 import json
 import logging
 import threading
+from decimal import Decimal
 from pathlib import Path
 from typing import Dict, Final, Optional, Tuple
 
 from .axes import (DEFAULTS, PARAMETER_NAMES, AxisTable, ConfigError, DeviceCode, from_stored,
-                   to_stored)
+                   parameter_spec, to_stored)
 from .commands import COMMANDS
 from .statefile import StateFileWriter, check_writable, write_atomically
-from .units import Number, Scaling
+from .units import Number, Scaling, parse_value
+from ..errors import InvalidCommand
 
 log = logging.getLogger(__name__)
 _DEVICE_CODES: Final = {int(code): code for code in DeviceCode}
@@ -141,12 +146,17 @@ class ParameterStore:
     def _load(self) -> None:
         assert self.state_file is not None
         try:
-            text = self.state_file.read_text(encoding="utf-8")
+            raw = self.state_file.read_bytes()
         except FileNotFoundError:
             return
         except OSError as exc:
             raise ConfigError(f"cannot read state file {self.state_file}: {exc}") from None
         try:
+            try:
+                text = raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise ValueError(f"not UTF-8 text: byte 0x{raw[exc.start]:02X} at offset "
+                                 f"{exc.start}") from None
             data = json.loads(text)
             if data.get("format") != self.FORMAT or data.get("version") != self.VERSION:
                 raise ValueError("not a tcp-bridge state file of version 1")
@@ -164,8 +174,12 @@ class ParameterStore:
                     continue
                 for cmd_key, value in entry["parameters"].items():
                     cmd = int(cmd_key)
-                    if cmd not in PARAMETER_NAMES or not isinstance(value, int):
+                    if cmd not in PARAMETER_NAMES or isinstance(value, bool) \
+                            or not isinstance(value, int):
                         raise ValueError(f"bad entry {cmd_key}={value!r} for axis {addr}")
+                    problem = _stored_problem(cmd, value, axis.position_factor)
+                    if problem:
+                        raise ValueError(f"axis {addr} parameter {cmd_key}={value}: {problem}")
                     self._overrides[addr][cmd] = value
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise ConfigError(f"state file {self.state_file} is damaged ({exc}); "
@@ -185,3 +199,22 @@ class ParameterStore:
             },
         }
         write_atomically(self.state_file, json.dumps(data, indent=1) + "\n")
+
+
+def _stored_problem(cmd: int, stored: int, factor: int) -> str:
+    """Why ``stored`` cannot be parameter ``cmd`` of an axis with ``factor`` ("": it can).
+
+    A value in the state file is checked as the same value in an S command or
+    in the axis table is (:func:`~tcp_bridge.tables.units.parse_value`, then
+    the scaled range): the file is ours, but it may have been edited or damaged,
+    and an unchecked value surfaces only later, as a NAK or a CAN without a log line.
+    """
+    spec = parameter_spec(cmd)
+    try:
+        user = from_stored(spec, stored, factor)
+        text = str(user) if isinstance(user, int) else format(Decimal(repr(user)), "f")
+        if to_stored(spec, parse_value(spec, text), factor) != stored:
+            return "not a value this parameter can hold"
+    except InvalidCommand as exc:
+        return str(exc)
+    return ""
