@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
 import threading
 import time
@@ -68,6 +69,14 @@ def parse_address(text: str) -> Tuple[str, int]:
         raise ValueError(f"expected HOST:PORT (port 0..65535), got {text!r}")
     host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
     return host or DEFAULT_HOST, int(port)
+
+
+def listen_error(exc: OSError) -> str:
+    """Why a server could not listen, in one short phrase (create_server() appends the
+    address to strerror; a resolver error has a negative errno)."""
+    if exc.errno and exc.errno > 0:
+        return os.strerror(exc.errno)
+    return (exc.strerror or str(exc)).split(" (while attempting")[0]
 
 
 def _to_frame(msg: can.Message) -> Optional[Frame]:
@@ -318,4 +327,4 @@ class SocketcandServer:
 
 
 __all__ = ["BUS_NAME", "DEFAULT_HOST", "QUEUE_LIMIT", "RAW_SETTLE", "SocketcandServer",
-           "parse_address"]
+           "listen_error", "parse_address"]
