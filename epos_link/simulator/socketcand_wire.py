@@ -166,7 +166,7 @@ class CommandReader:
                 return commands
             if end + 1 > self.limit:
                 raise CommandTooLong(f"a command longer than {self.limit} characters")
-            commands.append(self._buffer[1:end].decode("ascii", "replace"))
+            commands.append(self._buffer[1:end].decode("ascii", "replace").strip())
             del self._buffer[:end + 1]
 
 
