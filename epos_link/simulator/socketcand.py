@@ -22,16 +22,18 @@ The rules:
   its own frames unless CAN_RAW_RECV_OWN_MSGS is set (Linux
   ``Documentation/networking/can.rst``, "RAW socket option
   CAN_RAW_RECV_OWN_MSGS": off by default). Every other client does.
-* **One client cannot disturb the others.** Each client has a bounded output
-  queue (:data:`QUEUE_LIMIT` messages); a client whose queue overflows (it
-  stopped reading) is disconnected with a log line. Input is bounded too
-  (:data:`~epos_link.simulator.socketcand_wire.MAX_COMMAND`); garbage is answered
-  ``< error .. >`` or skipped, a client that goes away is forgotten.
+* **One client cannot disturb the others.** Each message is written to the
+  client's transport at once (it goes to the kernel while the client reads);
+  what waits for a client is bounded (:data:`OUTPUT_LIMIT` bytes). A client
+  over the bound (it stopped reading) is disconnected with a log line. Input is
+  bounded too (:data:`~epos_link.simulator.socketcand_wire.MAX_COMMAND`);
+  garbage is answered ``< error .. >`` or skipped, a client that goes away is
+  forgotten.
 * **Loopback by default** (127.0.0.1): the protocol has no authentication, and
   a client can put any frame on the bus.
 * **Chosen:** after ``< ok >`` to ``< rawmode >`` the server sends that client
   no frame until it sends something itself (it has read the ``< ok >`` then) or
-  :data:`RAW_SETTLE` seconds have passed; the frames wait in its queue, none is
+  :data:`RAW_SETTLE` seconds have passed; the frames are held for it, none is
   lost. python-can's client checks the ``< ok >`` with one ``recv()`` compared to
   the exact text, so a frame sent right behind it could arrive in the same read
   and fail the handshake (the reference server has the same race).
@@ -46,20 +48,18 @@ import os
 import socket
 import threading
 import time
-from typing import Optional, Set, Tuple, Union
+from typing import List, Optional, Set, Tuple
 
 import can
 
 from .socketcand_wire import (HI, CommandReader, CommandTooLong, Frame, Session,
-                              SocketcandError, format_frame)
+                              SocketcandError, error_reply, format_frame)
 
 log = logging.getLogger(__name__)
-QUEUE_LIMIT = 4096  # messages waiting for one client (a second of a busy 1 Mbit/s bus is ~9000)
-RAW_SETTLE = 0.5  # seconds at most between < ok > to < rawmode > and the first frame (see above)
+OUTPUT_LIMIT = 1 << 20  # bytes waiting for one client: ~20000 frames, 2 s of a full 1 Mbit/s bus
+RAW_SETTLE = 0.1  # seconds at most between < ok > to < rawmode > and the first frame (see above)
 DEFAULT_HOST = "127.0.0.1"
 BUS_NAME = "can0"
-_SETTLE = object()  # in an output queue: pause RAW_SETTLE
-_END = object()  # in an output queue: flush, then close the connection
 
 
 def parse_address(text: str) -> Tuple[str, int]:
@@ -91,13 +91,13 @@ def _to_frame(msg: can.Message) -> Optional[Frame]:
 
 
 class _Client:
-    def __init__(self, writer: asyncio.StreamWriter, limit: int, bus_name: str) -> None:
-        self.writer = writer
+    def __init__(self, writer: asyncio.StreamWriter, bus_name: str) -> None:
+        self.transport = writer.transport
         peer = writer.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
         self.session = Session(bus_name)
-        self.out: "asyncio.Queue[Union[bytes, object]]" = asyncio.Queue(limit)
-        self.spoke = asyncio.Event()  # it sent something after its < rawmode >
+        self.held: Optional[List[bytes]] = None  # frames held until its < ok > is read
+        self.held_bytes = 0
         self.gone = False
 
 
@@ -105,11 +105,11 @@ class SocketcandServer:
     """A socketcand server for one python-can virtual ``channel`` (the simulator's)."""
 
     def __init__(self, channel: str, host: str = DEFAULT_HOST, port: int = 0, *,
-                 bus_name: str = BUS_NAME, queue_limit: int = QUEUE_LIMIT,
+                 bus_name: str = BUS_NAME, output_limit: int = OUTPUT_LIMIT,
                  settle: float = RAW_SETTLE) -> None:
         self.channel = channel
         self.bus_name = bus_name
-        self.queue_limit = queue_limit
+        self.output_limit = output_limit
         self.settle = settle
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         # Bound now, so that a port in use or a bad host is the caller's OSError.
@@ -176,7 +176,7 @@ class SocketcandServer:
         line = format_frame(frame, timestamp).encode("ascii")
         for client in list(self._clients):
             if client is not source and client.session.receives_frames:
-                self._queue(client, line)
+                self._write(client, line, frame=True)
 
     def _from_client(self, client: _Client, frame: Frame) -> None:
         timestamp = time.time()
@@ -187,48 +187,58 @@ class SocketcandServer:
             assert self._bus is not None
             self._bus.send(msg)
         except (can.CanError, AssertionError) as exc:
-            self._queue(client, f"< error bus: {exc} >".encode("ascii", "replace"))
+            self._write(client, error_reply(f"bus: {exc}").encode("ascii", "replace"))
             return
         self._deliver(frame, timestamp, client)
 
-    def _queue(self, client: _Client, item: Union[bytes, object]) -> None:
+    def _write(self, client: _Client, data: bytes, frame: bool = False) -> None:
         if client.gone:
             return
-        try:
-            client.out.put_nowait(item)
-        except asyncio.QueueFull:
-            log.warning("socketcand client %s disconnected: it did not read (%d messages "
-                        "waiting for it)", client.peer, self.queue_limit)
+        if frame and client.held is not None:
+            client.held.append(data)
+            client.held_bytes += len(data)
+            waiting = client.held_bytes
+        else:
+            client.transport.write(data)
+            waiting = client.transport.get_write_buffer_size()
+        if waiting > self.output_limit:
+            log.warning("socketcand client %s disconnected: it did not read (%d bytes waiting "
+                        "for it)", client.peer, waiting)
             self._drop(client)
+
+    def _release(self, client: _Client) -> None:
+        """The client has read its < ok > (or RAW_SETTLE has passed): send what was held."""
+        held, client.held, client.held_bytes = client.held, None, 0
+        if held:
+            self._write(client, b"".join(held))
 
     def _drop(self, client: _Client) -> None:
         client.gone = True
         self._clients.discard(client)
-        client.writer.transport.abort()
+        client.transport.abort()
 
     # -- one client --------------------------------------------------------------------------
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        client = _Client(writer, self.queue_limit, self.bus_name)
+        client = _Client(writer, self.bus_name)
         self._clients.add(client)
         log.info("socketcand client %s connected", client.peer)
-        sender = asyncio.get_running_loop().create_task(self._send(client))
         commands = CommandReader()
-        self._queue(client, HI.encode())
-        ending = False
+        self._write(client, HI.encode())
         try:
-            while not client.gone and not ending:
+            while not client.gone:
                 data = await reader.read(4096)
                 if not data:
                     break
-                if client.session.receives_frames:
-                    client.spoke.set()  # so it has read the < ok > to its < rawmode >
+                if client.held is not None and client.session.receives_frames:
+                    self._release(client)  # it speaks after < rawmode >: it has read the < ok >
                 for text in commands.feed(data):
                     if not self._handle(client, text):
-                        ending = True
+                        # Its last replies go out, then the connection closes (FIN, not RST).
+                        client.gone = True
+                        self._clients.discard(client)
+                        client.transport.close()
                         break
-            if ending:  # its last replies go out first (the sender closes the connection)
-                await asyncio.wait([sender], timeout=5.0)
         except CommandTooLong as exc:
             log.warning("socketcand client %s disconnected: %s", client.peer, exc)
         except (ConnectionError, OSError):
@@ -240,49 +250,20 @@ class SocketcandServer:
         finally:
             if not client.gone:
                 self._drop(client)
-            sender.cancel()
             log.info("socketcand client %s gone", client.peer)
 
     def _handle(self, client: _Client, text: str) -> bool:
         """Carry out one command; False when the connection ends with it."""
         outcome = client.session.handle(text)
         for reply in outcome.replies:
-            self._queue(client, reply.encode("ascii", "replace"))
+            self._write(client, reply.encode("ascii", "replace"))
         if outcome.entered_raw:
-            client.spoke.clear()
-            self._queue(client, _SETTLE)
+            client.held = []
+            self._loop.call_later(self.settle, lambda: client.held is not None
+                                  and self._release(client))
         if outcome.frame is not None:
             self._from_client(client, outcome.frame)
-        if outcome.close:
-            self._clients.discard(client)  # nothing more for it: its replies, then the end
-            self._queue(client, _END)
-            return False
-        return True
-
-    async def _send(self, client: _Client) -> None:
-        writer = client.writer
-        try:
-            while True:
-                item = await client.out.get()
-                if item is _END:
-                    writer.close()
-                    await writer.wait_closed()
-                    break
-                if item is _SETTLE:
-                    try:
-                        await asyncio.wait_for(client.spoke.wait(), self.settle)
-                    except asyncio.TimeoutError:
-                        pass
-                    continue
-                assert isinstance(item, bytes)
-                writer.write(item)
-                await writer.drain()
-        except (ConnectionError, OSError):
-            pass
-        finally:
-            client.gone = True
-            self._clients.discard(client)
-            writer.transport.abort()
+        return not outcome.close
 
     # -- closing -------------------------------------------------------------------------------
 
@@ -326,5 +307,5 @@ class SocketcandServer:
         self.close()
 
 
-__all__ = ["BUS_NAME", "DEFAULT_HOST", "QUEUE_LIMIT", "RAW_SETTLE", "SocketcandServer",
+__all__ = ["BUS_NAME", "DEFAULT_HOST", "OUTPUT_LIMIT", "RAW_SETTLE", "SocketcandServer",
            "listen_error", "parse_address"]
