@@ -5,7 +5,7 @@
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
                      [--max-per-host 32]
-    tcp-bridge serve --simulate [--axes N]
+    tcp-bridge serve --simulate [--axes N] [--can-server HOST:PORT]
     tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
     tcp-bridge --version
@@ -100,6 +100,16 @@ def positive_seconds(text: str) -> float:
 # --- serve ---------------------------------------------------------------------------
 
 
+def can_server(text: str) -> str:
+    from epos_link.simulator.socketcand import parse_address
+
+    try:
+        host, port = parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
 def network(text: str) -> Network:
     try:
         return parse_network(text)
@@ -114,8 +124,12 @@ def _table(args: argparse.Namespace) -> AxisTable:
             options["link"] = args.sim_link
         if args.sim_baud:
             options["baud"] = args.sim_baud
+        if args.can_server:
+            options["can_server"] = args.can_server
         table = simulated_table(args.axes, bus_options=options)
     else:
+        if args.can_server:
+            raise ConfigError("--can-server serves the simulated CAN bus: it needs --simulate")
         table = AxisTable.load(args.config)
     changes: Dict[str, Any] = {}
     if args.debug:
@@ -197,6 +211,11 @@ async def _serve(args: argparse.Namespace) -> int:
     axes = ", ".join(f"{a.addr}={a.bus}/{a.node_id}" for a in table.axes.values())
     print(f"{PROG}: listening on {where}; axes {axes or '(none)'}; clients from "
           f"{describe_networks(options.allow)}", flush=True)
+    for backend in engine.backends:
+        served = getattr(backend, "can_server", None)
+        if served is not None:
+            print(f"{PROG}: CAN bus served over socketcand at {served.url} "
+                  f"(channel {served.bus_name})", flush=True)
     await stop.wait()
     print(f"{PROG}: shutting down (a second signal exits at once)", flush=True)
     await server.close()
@@ -295,6 +314,10 @@ def parser() -> argparse.ArgumentParser:
                      help="simulated EPOS4 drives: axis 1 the EPOS4, the rest behind its gateway")
     s.add_argument("--axes", type=int, default=3, metavar="N",
                    help="with --simulate: the EPOS4 itself and N-1 drives behind its gateway (default 3)")
+    s.add_argument("--can-server", type=can_server, metavar="HOST:PORT",
+                   help="with --simulate: also serve the simulated CAN bus over the socketcand "
+                        "protocol (python-can interface socketcand, channel can0); port 0 "
+                        "picks one")
     s.add_argument("--sim-link", choices=["inprocess", "pty"], help=argparse.SUPPRESS)
     s.add_argument("--sim-baud", type=int, help=argparse.SUPPRESS)
     s.add_argument("--bind", default="127.0.0.1", metavar="ADDR",

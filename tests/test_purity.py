@@ -12,6 +12,7 @@ PURE = [
     "epos_link.simulator.device", "epos_link.simulator.units", "epos_link.simulator.safety",
     "epos_link.simulator.faults", "epos_link.simulator.homing", "epos_link.simulator.nmt",
     "epos_link.simulator.clock", "epos_link.simulator.motion",
+    "epos_link.simulator.socketcand_wire",
     "epos_link.tools.decode", "epos_link.tools.pcapng",
     "tcp_bridge.wire", "tcp_bridge.wire.lines", "tcp_bridge.wire.requests",
     "tcp_bridge.wire.replies", "tcp_bridge.tables.commands", "tcp_bridge.tables.units",

@@ -9,6 +9,15 @@ Prints one line saying where it listens, then serves until interrupted::
     $ epos-link sim --usb --serial 1234
     listening on usb://?serial=1234: run programs as UMOCKDEV_DIR=/tmp/umockdev.Q1W2E3 umockdev-wrapper PROGRAM
 
+With ``--can-server HOST:PORT`` the simulator's CAN bus (the drives behind the
+gateway, the EPOS4 itself) is also served over the socketcand protocol
+(:mod:`epos_link.simulator.socketcand`), so other programs join it::
+
+    $ epos-link sim --tcp 127.0.0.1:0 --drives 2 --can-server 127.0.0.1:0
+    listening on socket://127.0.0.1:40123
+    CAN bus served over socketcand at 127.0.0.1:29536 (channel can0)
+    $ python -m can.logger -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536
+
 With ``--usb`` a line on standard input controls the cable: ``unplug [N]``,
 ``replug [N]`` (unit N, default all); SIGUSR1 unplugs and SIGUSR2 replugs every unit.
 """
@@ -31,6 +40,15 @@ def _host_port(text: str) -> tuple[str, int]:
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
     return host or "127.0.0.1", int(port)
+
+
+def _can_server(text: str) -> tuple[str, int]:
+    from ..simulator.socketcand import parse_address
+
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def own_id_conflict(node_id: int, drives: list[int]) -> Optional[str]:
@@ -107,6 +125,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the simulated EPOS4's own node id (default 1)")
     parser.add_argument("--drives", type=_node_list, default=[], metavar="2,3",
                         help="node ids of simulated drives behind the CAN gateway")
+    parser.add_argument("--can-server", type=_can_server, metavar="HOST:PORT",
+                        help="also serve the simulated CAN bus over the socketcand protocol "
+                             "(python-can: interface socketcand, channel can0); port 0 picks "
+                             "one; no authentication: keep it on 127.0.0.1 unless you mean it")
     parser.add_argument("--baud", type=baud_rate, default=None, help="pace replies like a UART at N baud")
     parser.add_argument("--drop", type=_probability, default=0.0, metavar="P",
                         help="drop each reply byte with probability P")
@@ -133,6 +155,10 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
 
     if args.serial and not args.usb:
         print("epos-link sim: --serial applies to --usb only", file=sys.stderr)
+        return 2
+    if args.can_server and args.serial and len(args.serial) > 1:
+        print("epos-link sim: --can-server serves one simulator's bus: give one --serial",
+              file=sys.stderr)
         return 2
     if args.usb and args.baud:
         print("epos-link sim: --baud paces a UART; it does not apply to --usb", file=sys.stderr)
@@ -165,6 +191,21 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
                                                     "TX host to device, RX device to host"])
     sims = [Epos4Simulator(args.node_id, args.drives) for _ in (args.serial or ["-"])]
     sim = sims[0]
+    can_server = None
+    if args.can_server:
+        from ..simulator.socketcand import SocketcandServer, listen_error
+
+        try:
+            can_server = SocketcandServer(sim.channel, *args.can_server).start()
+        except OSError as exc:
+            for each in sims:
+                each.close()
+            if trace_file:
+                trace_file.close()
+            host, port = args.can_server
+            print(f"epos-link sim: --can-server cannot listen on {host}:{port}: "
+                  f"{listen_error(exc)}", file=sys.stderr)
+            return 2
     link: Any
     try:
         if args.usb:
@@ -180,6 +221,8 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
             link = PtyLink(sim, options, trace=trace)
             where = link.path
     except (OSError, EposError) as exc:
+        if can_server is not None:
+            can_server.close()
         for each in sims:
             each.close()
         if trace_file:
@@ -206,12 +249,17 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         channels = ", ".join(s.channel for s in sims)
         print(f"drives behind the gateway: {', '.join(map(str, args.drives))} "
               f"(on the in-process python-can virtual channel {channels})", flush=True)
+    if can_server is not None:
+        print(f"CAN bus served over socketcand at {can_server.url} "
+              f"(channel {can_server.bus_name})", flush=True)
     if ready is not None:
         ready.set()
     try:
         while not stop.wait(0.2):
             pass
     finally:
+        if can_server is not None:
+            can_server.close()
         link.close()
         for each in sims:
             each.close()

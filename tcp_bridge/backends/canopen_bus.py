@@ -18,6 +18,21 @@ interface works::
     heartbeat_node_id = 127   # its node-ID; heartbeat_consumer_ms, abort_connection:
                               # see tcp_bridge.backends.heartbeat
 
+A bus served over the socketcand protocol (linux-can socketcand, or
+``epos-link sim --can-server`` / ``tcp-bridge serve --simulate --can-server``,
+which serve the simulated drives' bus) is reached through python-can's
+``socketcand`` interface::
+
+    interface = "socketcand"
+    host = "127.0.0.1"
+    port = 29536
+    channel = "can0"          # the bus name the server announces
+
+python-can's client retries a refused connection for 10 s, logging every try,
+and waits without bound for the server's greeting; so the backend first
+connects once itself (:func:`check_socketcand`): nothing listening, or a server
+that does not greet with ``< hi >``, is one ConfigError line at once.
+
 The command layer uses ``node.sdo.upload/download``, so without ``pdo`` the
 EDS matters for tools, not for the bridge; "none" gives an empty dictionary.
 With ``pdo = true`` the TPDOs are mapped through canopen's PDO API, which needs
@@ -30,6 +45,7 @@ from __future__ import annotations
 
 import errno
 import os
+import socket
 from typing import Any, Callable, Dict, Optional, Sequence
 
 import canopen
@@ -83,6 +99,33 @@ def _reason(exc: BaseException, channel: Any) -> str:
     return str(exc)
 
 
+SOCKETCAND_GREETING = b"< hi >"  # socketcand doc/protocol.md, "Mode NO_BUS"
+
+
+def check_socketcand(bus: str, options: Dict[str, Any], timeout: float = 3.0) -> None:
+    """ConfigError unless a socketcand server greets at ``options``' host and port."""
+    host, port = options.get("host"), options.get("port")
+    if host is None or port is None:
+        raise ConfigError(f"bus {bus}: interface socketcand needs host and port")
+    where = f"{host}:{port}"
+    try:
+        with socket.create_connection((str(host), int(port)), timeout=timeout) as probe:
+            greeting = b""
+            while len(greeting) < len(SOCKETCAND_GREETING):
+                chunk = probe.recv(len(SOCKETCAND_GREETING) - len(greeting))
+                if not chunk:
+                    break
+                greeting += chunk
+    except socket.timeout:
+        greeting = b""
+    except (OSError, ValueError) as exc:
+        why = _reason(exc, "") if isinstance(exc, OSError) else str(exc)
+        raise ConfigError(f"bus {bus}: no socketcand server at {where}: {why}") from None
+    if greeting != SOCKETCAND_GREETING:
+        raise ConfigError(f"bus {bus}: {where} is not a socketcand server (it did not "
+                          f"greet with {SOCKETCAND_GREETING.decode()})")
+
+
 def object_dictionary(eds: Any, node_id: int) -> Any:
     """The dictionary of a node: ``"default"`` (EPOS4 EDS), ``"none"`` or an EDS/DCF path."""
     if eds in (None, "none", ""):
@@ -114,6 +157,8 @@ class CanopenBackend:
         heartbeat = heartbeat_settings(bus.name, options, axes)
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.05  # a quick notifier stop on close
+        if options.get("interface") == "socketcand":
+            check_socketcand(bus.name, options)
         try:
             self.network.connect(**options)
         except Exception as exc:  # python-can raises CanError, OSError, ValueError, ImportError...

@@ -13,12 +13,19 @@ Bus options::
     baud = 115200        # with link = "pty": pace the simulated wire like a UART
     timeout = 0.5        # EposClient request timeout
     gateway_timeout = 0.3  # the simulated gateway's SDO timeout for absent nodes
+    can_server = "127.0.0.1:0"  # also serve the simulated CAN bus over socketcand
 
 With ``link = "can"`` the bridge reaches every simulated node, the EPOS4 itself
 included, directly on the simulator's virtual CAN bus through the ``canopen``
 backend, as it reaches drives through a CAN adapter: so PDO-fed status can be
 tried without hardware. The ``canopen`` backend's own options apply then
 (:data:`CAN_OPTIONS`: ``pdo = true``, ``eds``, ``sdo_timeout`` ...).
+
+With ``can_server = "HOST:PORT"`` (either link; ``tcp-bridge serve --simulate
+--can-server HOST:PORT``) the simulator's CAN bus is also served over the
+socketcand protocol (:mod:`epos_link.simulator.socketcand`, port 0: a free one),
+so ``python -m can.logger -i socketcand`` or a canopen script in another process
+sees the drives' traffic; the backend's ``can_server`` attribute says where.
 """
 from __future__ import annotations
 
@@ -31,6 +38,24 @@ from .heartbeat import HEARTBEAT_OPTIONS
 
 CAN_OPTIONS: Final = ("eds", "sdo_timeout", "sdo_retries", "pdo", "pdo_max_age",
                       "pdo_event_timer", "pdo_inhibit_time", *HEARTBEAT_OPTIONS)
+
+
+def _start_can_server(bus: str, options: Dict[str, Any], simulator: Any) -> Any:
+    """The socketcand server of ``can_server = "HOST:PORT"`` (taken out of ``options``), or None."""
+    text = options.pop("can_server", None)
+    if text is None:
+        return None
+    from epos_link.simulator.socketcand import SocketcandServer, listen_error, parse_address
+
+    try:
+        host, port = parse_address(str(text))
+    except ValueError as exc:
+        raise ConfigError(f"bus {bus}: can_server: {exc}") from None
+    try:
+        return SocketcandServer(simulator.channel, host, port).start()
+    except OSError as exc:
+        raise ConfigError(f"bus {bus}: can_server cannot listen on {host}:{port}: "
+                          f"{listen_error(exc)}") from None
 
 
 def _pop_nodes(options: Dict[str, Any], axes: Sequence[AxisConfig]) -> Tuple[int, List[int], float]:
@@ -60,27 +85,35 @@ class SimCanBackend(CanopenBackend):
         options.pop("link")
         can = {key: options.pop(key) for key in CAN_OPTIONS if key in options}
         gateway, drives, gateway_timeout = _pop_nodes(options, axes)
+        server_option = {k: options.pop(k) for k in ("can_server",) if k in options}
         if options:
             raise ConfigError(f"bus {bus.name}: options {sorted(options)} do not apply to "
-                              f"link = \"can\" (it takes {', '.join(CAN_OPTIONS)})")
+                              f"link = \"can\" (it takes {', '.join(CAN_OPTIONS)}, can_server)")
         self.simulator = Epos4Simulator(gateway, drives, gateway_timeout=gateway_timeout)
+        self.can_server: Any = None
         try:
+            self.can_server = _start_can_server(bus.name, server_option, self.simulator)
             super().__init__(BusConfig(bus.name, "canopen", {
                 "interface": "virtual", "channel": self.simulator.channel,
                 "receive_own_messages": False, **can}), axes)
         except BaseException:
-            self.simulator.close()
+            self._close_simulator()
             raise
 
     def drive(self, node_id: int) -> Any:
         """The simulated drive model of ``node_id`` (fault injection in tests)."""
         return self.simulator.drive(node_id)
 
+    def _close_simulator(self) -> None:
+        if self.can_server is not None:
+            self.can_server.close()
+        self.simulator.close()
+
     def close(self) -> None:
         try:
             super().close()
         finally:
-            self.simulator.close()
+            self._close_simulator()
 
 
 class SimBackend:
@@ -100,11 +133,14 @@ class SimBackend:
                               "(the canopen backend on the simulator's CAN bus)")
         baud: Optional[int] = options.pop("baud", None)
         timeout = float(options.pop("timeout", 0.5))
+        server_option = {k: options.pop(k) for k in ("can_server",) if k in options}
         if options:
             raise ConfigError(f"bus {bus.name}: unknown sim options {sorted(options)}")
         self.simulator = Epos4Simulator(gateway, drives, gateway_timeout=gateway_timeout)
         self.link: Any = None
+        self.can_server: Any = None
         try:
+            self.can_server = _start_can_server(bus.name, server_option, self.simulator)
             if link == "pty":
                 from epos_link.simulator.link import LinkOptions, PtyLink
 
@@ -137,6 +173,8 @@ class SimBackend:
     def _close_simulator(self) -> None:
         if self.link is not None:
             self.link.close()
+        if self.can_server is not None:
+            self.can_server.close()
         self.simulator.close()
 
     def close(self) -> None:

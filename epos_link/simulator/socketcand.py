@@ -1,0 +1,311 @@
+"""Serve the simulator's CAN bus to other processes over the socketcand protocol.
+
+The simulated drives live on a python-can ``virtual`` channel, which only the
+simulator's own process can join. :class:`SocketcandServer` joins that channel
+and serves it over TCP, so that any python-can program joins the same bus with
+``can.Bus(interface="socketcand", host=HOST, port=PORT, channel="can0")``:
+``python -m can.logger``, ``can.viewer``, a ``canopen.Network``, the bridge.
+The protocol (modes, commands, formats) is :mod:`epos_link.simulator.socketcand_wire`.
+
+The rules:
+
+* **One bus order.** Every frame reaches the clients through one dispatcher, the
+  server's event loop: a frame from a simulated node (read from the virtual
+  channel by one reader thread) and a frame a client sends (put onto the
+  virtual channel, then passed on) are queued to the clients in the order the
+  loop handles them, so all clients see the same sequence. The simulated nodes
+  see a client's frame when the loop sends it. (The virtual channel itself has
+  no global order: two threads sending at once may reach two listeners in
+  opposite orders; the clients' order is the server's view of the bus.)
+* **Own frames.** A client does not receive the frames it sent itself: the
+  reference server reads the bus with a CAN_RAW socket, which does not receive
+  its own frames unless CAN_RAW_RECV_OWN_MSGS is set (Linux
+  ``Documentation/networking/can.rst``, "RAW socket option
+  CAN_RAW_RECV_OWN_MSGS": off by default). Every other client does.
+* **One client cannot disturb the others.** Each message is written to the
+  client's transport at once (it goes to the kernel while the client reads);
+  what waits for a client is bounded (:data:`OUTPUT_LIMIT` bytes). A client
+  over the bound (it stopped reading) is disconnected with a log line. Input is
+  bounded too (:data:`~epos_link.simulator.socketcand_wire.MAX_COMMAND`);
+  garbage is answered ``< error .. >`` or skipped, a client that goes away is
+  forgotten.
+* **Loopback by default** (127.0.0.1): the protocol has no authentication, and
+  a client can put any frame on the bus.
+* **Chosen:** after ``< ok >`` to ``< rawmode >`` the server sends that client
+  no frame until it sends something itself (it has read the ``< ok >`` then) or
+  :data:`RAW_SETTLE` seconds have passed; the frames are held for it, none is
+  lost. python-can's client checks the ``< ok >`` with one ``recv()`` compared to
+  the exact text, so a frame sent right behind it could arrive in the same read
+  and fail the handshake (the reference server has the same race).
+* Close: the reader thread and the loop thread are joined with timeouts, the
+  clients' connections are closed, the virtual bus connection is shut down.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import socket
+import threading
+import time
+from typing import List, Optional, Set, Tuple
+
+import can
+
+from .socketcand_wire import (HI, CommandReader, CommandTooLong, Frame, Session,
+                              SocketcandError, error_reply, format_frame)
+
+log = logging.getLogger(__name__)
+OUTPUT_LIMIT = 1 << 20  # bytes waiting for one client: ~20000 frames, 2 s of a full 1 Mbit/s bus
+RAW_SETTLE = 0.1  # seconds at most between < ok > to < rawmode > and the first frame (see above)
+DEFAULT_HOST = "127.0.0.1"
+BUS_NAME = "can0"
+
+
+def parse_address(text: str) -> Tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6; empty host: 127.0.0.1; port 0: any free one)."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"expected HOST:PORT (port 0..65535), got {text!r}")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    return host or DEFAULT_HOST, int(port)
+
+
+def listen_error(exc: OSError) -> str:
+    """Why a server could not listen, in one short phrase (create_server() appends the
+    address to strerror; a resolver error has a negative errno)."""
+    if exc.errno and exc.errno > 0:
+        return os.strerror(exc.errno)
+    return (exc.strerror or str(exc)).split(" (while attempting")[0]
+
+
+def _to_frame(msg: can.Message) -> Optional[Frame]:
+    if msg.is_fd:
+        return None  # socketcand's fdframe is not in protocol.md; the simulator sends none
+    try:
+        return Frame(msg.arbitration_id, b"" if msg.is_remote_frame else bytes(msg.data),
+                     extended=msg.is_extended_id, remote=msg.is_remote_frame,
+                     error=msg.is_error_frame, dlc=msg.dlc if msg.is_remote_frame else -1)
+    except SocketcandError:
+        return None
+
+
+class _Client:
+    def __init__(self, writer: asyncio.StreamWriter, bus_name: str) -> None:
+        self.transport = writer.transport
+        peer = writer.get_extra_info("peername")
+        self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        self.session = Session(bus_name)
+        self.held: Optional[List[bytes]] = None  # frames held until its < ok > is read
+        self.held_bytes = 0
+        self.gone = False
+
+
+class SocketcandServer:
+    """A socketcand server for one python-can virtual ``channel`` (the simulator's)."""
+
+    def __init__(self, channel: str, host: str = DEFAULT_HOST, port: int = 0, *,
+                 bus_name: str = BUS_NAME, output_limit: int = OUTPUT_LIMIT,
+                 settle: float = RAW_SETTLE) -> None:
+        self.channel = channel
+        self.bus_name = bus_name
+        self.output_limit = output_limit
+        self.settle = settle
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        # Bound now, so that a port in use or a bad host is the caller's OSError.
+        self._sock = socket.create_server((host, port), family=family)
+        self.address: Tuple[str, int] = self._sock.getsockname()[:2]
+        self._bus: Optional[can.BusABC] = None
+        self._loop = asyncio.new_event_loop()
+        self._clients: Set[_Client] = set()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._server: Optional[asyncio.AbstractServer] = None
+
+    def start(self) -> "SocketcandServer":
+        try:
+            # preserve_timestamps: the simulated nodes see a client's frame with the
+            # timestamp the other clients are sent.
+            self._bus = can.Bus(interface="virtual", channel=self.channel,
+                                receive_own_messages=False, preserve_timestamps=True)
+            loop_thread = threading.Thread(target=self._loop.run_forever,
+                                           name="socketcand-loop", daemon=True)
+            loop_thread.start()
+            self._threads.append(loop_thread)
+            self._server = asyncio.run_coroutine_threadsafe(
+                asyncio.start_server(self._serve, sock=self._sock), self._loop).result(10)
+            reader = threading.Thread(target=self._read_bus, name="socketcand-bus", daemon=True)
+            reader.start()
+            self._threads.append(reader)
+        except BaseException:
+            self.close()
+            raise
+        log.info("CAN channel %s served over socketcand at %s:%d", self.channel, *self.address)
+        return self
+
+    @property
+    def url(self) -> str:
+        host, port = self.address
+        return f"{'[' + host + ']' if ':' in host else host}:{port}"
+
+    # -- the simulated nodes' side ---------------------------------------------------------
+
+    def _read_bus(self) -> None:
+        """Every frame of the virtual channel goes to the dispatcher (clients or not: the
+        channel's queue for this connection must not grow)."""
+        bus = self._bus
+        assert bus is not None
+        while not self._stop.is_set():
+            try:
+                msg = bus.recv(0.1)
+            except can.CanError:
+                return  # shut down
+            if msg is None:
+                continue
+            frame = _to_frame(msg)
+            if frame is None:
+                continue
+            try:
+                self._loop.call_soon_threadsafe(self._deliver, frame, msg.timestamp, None)
+            except RuntimeError:  # the loop is closed: the server is closing
+                return
+
+    # -- the dispatcher (all on the loop thread) ----------------------------------------------
+
+    def _deliver(self, frame: Frame, timestamp: float, source: Optional[_Client]) -> None:
+        line = format_frame(frame, timestamp).encode("ascii")
+        for client in list(self._clients):
+            if client is not source and client.session.receives_frames:
+                self._write(client, line, frame=True)
+
+    def _from_client(self, client: _Client, frame: Frame) -> None:
+        timestamp = time.time()
+        msg = can.Message(timestamp=timestamp, arbitration_id=frame.can_id,
+                          is_extended_id=frame.extended, is_remote_frame=frame.remote,
+                          dlc=frame.dlc, data=frame.data)
+        try:
+            assert self._bus is not None
+            self._bus.send(msg)
+        except (can.CanError, AssertionError) as exc:
+            self._write(client, error_reply(f"bus: {exc}").encode("ascii", "replace"))
+            return
+        self._deliver(frame, timestamp, client)
+
+    def _write(self, client: _Client, data: bytes, frame: bool = False) -> None:
+        if client.gone:
+            return
+        if frame and client.held is not None:
+            client.held.append(data)
+            client.held_bytes += len(data)
+            waiting = client.held_bytes
+        else:
+            client.transport.write(data)
+            waiting = client.transport.get_write_buffer_size()
+        if waiting > self.output_limit:
+            log.warning("socketcand client %s disconnected: it did not read (%d bytes waiting "
+                        "for it)", client.peer, waiting)
+            self._drop(client)
+
+    def _release(self, client: _Client) -> None:
+        """The client has read its < ok > (or RAW_SETTLE has passed): send what was held."""
+        held, client.held, client.held_bytes = client.held, None, 0
+        if held:
+            self._write(client, b"".join(held))
+
+    def _drop(self, client: _Client) -> None:
+        client.gone = True
+        self._clients.discard(client)
+        client.transport.abort()
+
+    # -- one client --------------------------------------------------------------------------
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        client = _Client(writer, self.bus_name)
+        self._clients.add(client)
+        log.info("socketcand client %s connected", client.peer)
+        commands = CommandReader()
+        self._write(client, HI.encode())
+        try:
+            while not client.gone:
+                data = await reader.read(4096)
+                if not data:
+                    break
+                if client.held is not None and client.session.receives_frames:
+                    self._release(client)  # it speaks after < rawmode >: it has read the < ok >
+                for text in commands.feed(data):
+                    if not self._handle(client, text):
+                        # Its last replies go out, then the connection closes (FIN, not RST).
+                        client.gone = True
+                        self._clients.discard(client)
+                        client.transport.close()
+                        break
+        except CommandTooLong as exc:
+            log.warning("socketcand client %s disconnected: %s", client.peer, exc)
+        except (ConnectionError, OSError):
+            pass
+        except asyncio.CancelledError:
+            # The server is closing. Ending normally: asyncio's stream callback asks a
+            # finished connection task for its exception, which re-raises a cancellation.
+            pass
+        finally:
+            if not client.gone:
+                self._drop(client)
+            log.info("socketcand client %s gone", client.peer)
+
+    def _handle(self, client: _Client, text: str) -> bool:
+        """Carry out one command; False when the connection ends with it."""
+        outcome = client.session.handle(text)
+        for reply in outcome.replies:
+            self._write(client, reply.encode("ascii", "replace"))
+        if outcome.entered_raw:
+            client.held = []
+            self._loop.call_later(self.settle, lambda: client.held is not None
+                                  and self._release(client))
+        if outcome.frame is not None:
+            self._from_client(client, outcome.frame)
+        return not outcome.close
+
+    # -- closing -------------------------------------------------------------------------------
+
+    async def _shutdown(self) -> None:
+        if self._server is not None:
+            self._server.close()
+        for client in list(self._clients):
+            self._drop(client)  # its connection task sees the end of its stream and returns
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        if tasks:
+            _, pending = await asyncio.wait(tasks, timeout=1.0)
+            for task in pending:
+                task.cancel()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop serving: clients disconnected, threads joined (each within ``timeout``)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        if self._loop.is_running():
+            try:
+                asyncio.run_coroutine_threadsafe(self._shutdown(), self._loop).result(timeout)
+            except Exception as exc:  # a timeout: the loop is stopped below all the same
+                log.warning("socketcand server: clients not closed within %.1f s (%s)",
+                            timeout, exc)
+            self._loop.call_soon_threadsafe(self._loop.stop)
+        for thread in self._threads:
+            thread.join(timeout)
+            if thread.is_alive():
+                log.warning("socketcand server: thread %s did not stop", thread.name)
+        if not self._loop.is_running():
+            self._loop.close()
+        self._sock.close()
+        if self._bus is not None:
+            self._bus.shutdown()
+
+    def __enter__(self) -> "SocketcandServer":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["BUS_NAME", "DEFAULT_HOST", "OUTPUT_LIMIT", "RAW_SETTLE", "SocketcandServer",
+           "listen_error", "parse_address"]
