@@ -13,22 +13,21 @@ Times are taken from the bus's own frame timestamps (the last heartbeat, the
 EMCY), not from the kill, so a loaded machine that is slow to deliver SIGKILL
 does not make the test flaky; the waits around them allow 10x.
 
-Needs two parts that are built in parallel (issue 23): the simulated drives'
-heartbeat consumer (EMCY 8130h and 6007h on a missed heartbeat) and a way to
-run the simulator in its own process on a CAN bus that other processes can
-join. Until both are there the tests skip; :func:`simulator_process` is the
-one place to complete at merge.
+The simulator runs as ``epos-link sim --can-server``: its CAN bus is served
+over socketcand, which the bridge (canopen backend, ``interface =
+"socketcand"``) and the test's listener join.
 """
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import pytest
 
@@ -39,23 +38,34 @@ NODE = 2
 EMCY_HEARTBEAT = 0x8130
 
 
-def bus_options() -> Optional[Dict[str, Any]]:
-    """The python-can options of a bus that several processes can share, or None."""
-    raw = os.environ.get("BRIDGE_E2E_CAN")  # e.g. "udp_multicast:239.74.163.2"
+SERVED = re.compile(r"socketcand at ([0-9.]+):(\d+)")
+
+
+def simulator_process(tmp: Path) -> Tuple[Optional["subprocess.Popen[str]"], Dict[str, Any]]:
+    """``epos-link sim --drives 2 --can-server 127.0.0.1:0`` in its own process: the
+    process and the python-can options of its CAN bus (socketcand, issue 23).
+
+    ``BRIDGE_E2E_CAN=interface:channel`` runs the same test on another bus that
+    several processes share (a vcan, real hardware): then no simulator is started
+    and the drive ``NODE`` on it must be an EPOS4 that may move.
+    """
+    raw = os.environ.get("BRIDGE_E2E_CAN")
     if raw:
         interface, _, channel = raw.partition(":")
-        return {"interface": interface, "channel": channel}
-    return None
+        return None, {"interface": interface, "channel": channel}
+    out = (tmp / "sim.log").open("w+")
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link", "sim", "--tcp", "127.0.0.1:0",
+                             "--drives", str(NODE), "--can-server", "127.0.0.1:0"],
+                            stdout=out, stderr=subprocess.STDOUT, text=True)
 
+    def served() -> bool:
+        return SERVED.search((tmp / "sim.log").read_text()) is not None or proc.poll() is not None
 
-def simulator_process(options: Dict[str, Any], tmp: Path) -> subprocess.Popen:
-    """Start the simulated drive ``NODE`` in its own process on the bus of ``options``.
-
-    To complete at merge: the simulator's cross-process CAN link (another
-    engineer's part of issue 23) and its heartbeat consumer.
-    """
-    pytest.skip("no command yet runs the simulator, with its heartbeat consumer, on a "
-                "cross-process CAN bus (issue 23: completed at merge)")
+    wait_until(served, 60, "the simulator never served its CAN bus")
+    found = SERVED.search((tmp / "sim.log").read_text())
+    assert found and proc.poll() is None, (tmp / "sim.log").read_text()
+    return proc, {"interface": "socketcand", "host": found.group(1), "port": int(found.group(2)),
+                  "channel": "can0"}
 
 
 def write_table(tmp: Path, options: Dict[str, Any], heartbeat: bool) -> Path:
@@ -77,14 +87,6 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.fixture
-def bus() -> Iterator[Dict[str, Any]]:
-    options = bus_options()
-    if options is None:
-        pytest.skip("set BRIDGE_E2E_CAN=interface:channel to a bus several processes share")
-    yield options
-
-
 def serve(table: Path, port: int) -> subprocess.Popen:
     log = table.with_suffix(".log")
     with log.open("w") as out:  # a file, not a pipe nobody drains once it serves
@@ -104,11 +106,12 @@ def start_velocity_move(port: int) -> None:
             assert reply.status.name == "ACK", (line, reply)
 
 
-def run_and_kill(bus: Dict[str, Any], tmp_path: Path, heartbeat: bool) -> List[Any]:
-    """Serve, move, SIGKILL the bridge; the frames seen on the bus up to 4 s later."""
+def run_and_kill(tmp_path: Path, heartbeat: bool) -> Tuple[List[Any], bool]:
+    """Serve, move, SIGKILL the bridge; the frames seen on the bus up to 4 s later, and
+    whether the drive is then at rest in quick stop (or past it)."""
     import can
 
-    sim = simulator_process(bus, tmp_path)
+    sim, bus = simulator_process(tmp_path)
     listener = can.Bus(**bus)
     bridge: Optional[subprocess.Popen] = None
     try:
@@ -125,18 +128,20 @@ def run_and_kill(bus: Dict[str, Any], tmp_path: Path, heartbeat: bool) -> List[A
             message = listener.recv(0.1)
             if message is not None:
                 frames.append(message)
-        return frames
+        if heartbeat:
+            wait_until(lambda: drive_at_rest(bus), 10, "the drive did not come to rest")
+        return frames, drive_at_rest(bus)
     finally:
         if bridge is not None and bridge.poll() is None:
             bridge.kill()
         listener.shutdown()
-        sim.terminate()
-        sim.wait(30)
+        if sim is not None:
+            sim.terminate()
+            sim.wait(30)
 
 
-def test_a_killed_bridge_stops_the_drive_within_four_periods(
-        bus: Dict[str, Any], tmp_path: Path) -> None:
-    frames = run_and_kill(bus, tmp_path, heartbeat=True)
+def test_a_killed_bridge_stops_the_drive_within_four_periods(tmp_path: Path) -> None:
+    frames, at_rest = run_and_kill(tmp_path, heartbeat=True)
     beats = [m for m in frames if m.arbitration_id == 0x700 + 127]
     emcy = [m for m in frames if m.arbitration_id == 0x80 + NODE
             and int.from_bytes(bytes(m.data[:2]), "little") == EMCY_HEARTBEAT]
@@ -144,14 +149,13 @@ def test_a_killed_bridge_stops_the_drive_within_four_periods(
     last_beat = beats[-1].timestamp if beats else None
     if last_beat is not None:  # the kill may land between two heartbeats: none after it
         assert emcy[0].timestamp - last_beat <= (3 + 1) * PERIOD_MS / 1000
-    wait_until(lambda: drive_at_rest(bus), 10, "the drive did not come to rest")
+    assert at_rest
 
 
-def test_without_heartbeat_a_killed_bridge_leaves_the_drive_turning(
-        bus: Dict[str, Any], tmp_path: Path) -> None:
-    frames = run_and_kill(bus, tmp_path, heartbeat=False)
+def test_without_heartbeat_a_killed_bridge_leaves_the_drive_turning(tmp_path: Path) -> None:
+    frames, at_rest = run_and_kill(tmp_path, heartbeat=False)
     assert not [m for m in frames if m.arbitration_id == 0x80 + NODE]
-    assert not drive_at_rest(bus)
+    assert not at_rest
 
 
 def drive_at_rest(options: Dict[str, Any]) -> bool:
