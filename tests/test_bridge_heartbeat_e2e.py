@@ -29,7 +29,6 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-import pytest
 
 from tests.helpers import psi_ask, wait_until
 

@@ -9,7 +9,7 @@ import sys
 import textwrap
 import time
 from pathlib import Path
-from typing import Iterator, List, Tuple
+from typing import Callable, Iterator, List, Tuple
 
 import pytest
 
@@ -199,3 +199,53 @@ def test_bad_can_server_arguments_are_one_line(argv: List[str], message: str) ->
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
     assert [line for line in out.stderr.splitlines() if not line.startswith(("usage", " "))] \
         == [out.stderr.strip().splitlines()[-1]]
+
+
+def test_basenode402_script_in_a_second_process_enables_and_moves_through_pdos(
+        sim: Tuple[str, int, str]) -> None:
+    """Issue 23, must-show 1: canopen's usual ``BaseNode402`` script, in this (a second)
+    process, on the bus ``epos-link sim --can-server`` serves: PDO configuration read
+    from the drive, NMT Operational, the state machine through RPDO1 to OPERATION
+    ENABLED, then a profile position move through RPDO3 to target reached."""
+    import canopen
+
+    from epos_link.simulator.od import EDS_PATH
+
+    host, port, _ = sim
+    network = canopen.Network()
+    network.connect(interface="socketcand", host=host, port=port, channel="can0")
+    try:
+        node = canopen.BaseNode402(2, str(EDS_PATH))
+        node.sdo.RESPONSE_TIMEOUT = 5.0
+        network.add_node(node)
+        node.tpdo.read()
+        node.rpdo.read()
+        # read_pdos=False: the PDOs were just read; canopen's own read asserts an NMT
+        # view of PRE-OPERATIONAL, which it has only after hearing a boot-up.
+        node.setup_402_state_machine(read_pdos=False)
+        node.nmt.state = "OPERATIONAL"
+        until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0200 != 0, "the statusword TPDO")
+        for state in ("READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED"):
+            node.state = state  # canopen waits for the statusword TPDO itself
+        assert node.state == "OPERATION ENABLED"
+        rpdo = node.rpdo[3]  # maxon's RPDO3: controlword + target position
+        rpdo["Controlword"].raw = 0x000F
+        rpdo["Target position"].raw = 4000
+        rpdo.transmit()
+        rpdo["Controlword"].raw = 0x001F  # new set-point, absolute
+        rpdo.transmit()
+        until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0400 != 0
+              and node.sdo[0x6064].raw == 4000, "target reached at 4000")
+        rpdo["Controlword"].raw = 0x000F
+        rpdo.transmit()
+        node.state = "SWITCH ON DISABLED"
+    finally:
+        network.disconnect()
+
+
+def until(condition: "Callable[[], bool]", what: str, timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
