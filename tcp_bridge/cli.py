@@ -257,7 +257,7 @@ def split_requests(texts: Sequence[str]) -> List[str]:
     ``"1R10\\n1R12"`` is two requests with two replies; sending it as one
     would print the first reply and leave the second unread.
     """
-    out = []
+    out: List[str] = []
     for text in texts:
         out.extend(line.strip() for line in text.replace("\r", "\n").split("\n"))
     return [line for line in out if line]

@@ -130,7 +130,7 @@ class BridgeServer:
     def __init__(self, engine: Engine, options: Optional[ServerOptions] = None) -> None:
         self.engine = engine
         self.options = options or ServerOptions()
-        self._servers: List[asyncio.AbstractServer] = []
+        self._servers: List[asyncio.Server] = []
         self._connections: Set[_Connection] = set()
         self._closing = False
         self._closed = asyncio.Event()

@@ -245,6 +245,7 @@ class Epos4Simulator:
             sim.wake_ticker = self._pdo.wake
             sim.comm.wake_timer = self._heartbeat.wake
         self._listener = FrameListener(self.drives)
+        assert self._drive_net.notifier is not None  # connect_virtual started it
         self._drive_net.notifier.add_listener(self._listener)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
                                                         timeout=gateway_timeout)

@@ -26,6 +26,7 @@ Pure but for :class:`HeartbeatTicker`, the one thread that drives the timers.
 from __future__ import annotations
 
 import math
+from functools import partial
 import threading
 import time
 from dataclasses import dataclass
@@ -73,7 +74,7 @@ class Heartbeats:
         if CONSUMER in store.od:
             self._subs = [s for s in getattr(store.od[CONSUMER], "subindices", {}) if s > 0]
             for sub in self._subs:
-                store.add_write_hook(CONSUMER, sub, lambda v, sub=sub: self._consumer_written(sub, v))
+                store.add_write_hook(CONSUMER, sub, partial(self._consumer_written, sub))
         self.reset()
 
     def reset(self) -> None:

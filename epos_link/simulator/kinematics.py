@@ -65,6 +65,7 @@ class Kinematics(Monitors):
     _powered_at_fault: bool
     _pending: tuple[int, State] | None
     _goal: bool
+    _self_test_until: float
 
     if TYPE_CHECKING:  # provided by Drive
         @property

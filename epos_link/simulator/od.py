@@ -68,6 +68,11 @@ __all__ = [
 ]
 
 Value = Union[int, float, str, bytes]
+
+
+def _value(decoded: Union[Value, bytearray]) -> Value:
+    """canopen decodes DOMAIN/OCTET_STRING to a bytearray; a Value is immutable."""
+    return bytes(decoded) if isinstance(decoded, bytearray) else decoded
 ReadHook = Callable[[], Value]
 WriteHook = Callable[[Value], None]
 
@@ -114,10 +119,10 @@ SIMULATED_SERIAL_BASE = 0x5E000000
 
 
 def _own_serial_number(od: ObjectDictionary, node_id: int) -> None:
-    try:
-        serial = od[0x1018][4]
-    except KeyError:  # an EDS without the serial number sub-entry
-        return
+    identity = od.get(0x1018)
+    if not isinstance(identity, (ODRecord, ODArray)) or 4 not in identity.subindices:
+        return  # an EDS without the serial number sub-entry
+    serial = identity[4]
     serial.default = SIMULATED_SERIAL_BASE + node_id
 
 
@@ -285,7 +290,7 @@ class ObjectStore:
     def read_value(self, index: int, subindex: int = 0) -> Value:
         """Checked read, decoded to a Python value."""
         var = self.variable(index, subindex)
-        return var.decode_raw(self.read(index, subindex))
+        return _value(var.decode_raw(self.read(index, subindex)))
 
     def write_value(self, index: int, subindex: int, value: Value) -> None:
         """Checked write of a Python value, encoded at the type's exact size."""
@@ -326,7 +331,7 @@ class ObjectStore:
 
     @classmethod
     def _decode_write(cls, var: ODVariable, data: bytes) -> Value:
-        return var.decode_raw(cls.fit_length(var, data))
+        return _value(var.decode_raw(cls.fit_length(var, data)))
 
     @staticmethod
     def _check_range(var: ODVariable, value: Value) -> None:
@@ -378,9 +383,9 @@ class ObjectStore:
         self.saved = {k: v for k, v in saved.items() if k in self._saveable_keys()}
         self.reset()
 
-    def _saveable_keys(self) -> set[str]:
-        return {key_text(v.index, v.subindex) for v in self._variables()
-                if v.writable and v.index not in NOT_SAVED}
+    def _saveable_keys(self) -> "frozenset[str]":
+        return frozenset(key_text(v.index, v.subindex) for v in self._variables()
+                         if v.writable and v.index not in NOT_SAVED)
 
     def reset(self) -> None:
         """Values back to EDS defaults overlaid with the saved parameters (NMT reset node)."""
@@ -409,7 +414,7 @@ def attach_local_node(node: canopen.LocalNode, store: ObjectStore) -> None:
     """
 
     def on_read(index: int, subindex: int, od: ODVariable, **_: object) -> Value:
-        return od.decode_raw(store.read(index, subindex))
+        return _value(od.decode_raw(store.read(index, subindex)))
 
     def on_write(index: int, subindex: int, od: ODVariable, data: bytes, **_: object) -> None:
         store.write(index, subindex, bytes(data))

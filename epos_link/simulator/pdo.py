@@ -56,6 +56,7 @@ drive whose firmware does not allow those objects in a PDO (tests).
 from __future__ import annotations
 
 import math
+from functools import partial
 import threading
 import time
 from dataclasses import dataclass
@@ -154,7 +155,7 @@ def install_mapping_rules(store: ObjectStore, com: int, mapping: int, changed: C
         if sub != 1:
             store.add_write_hook(com, sub, lambda v: changed())
     for sub in mapping_subs(store, mapping):
-        store.add_write_hook(mapping, sub, lambda v, sub=sub: check_map(sub, v))
+        store.add_write_hook(mapping, sub, partial(check_map, sub))
 
 
 class TransmitPdos:

@@ -212,6 +212,10 @@ class SocketcandServer:
         if held:
             self._write(client, b"".join(held))
 
+    def _release_held(self, client: _Client) -> None:
+        if client.held is not None:  # not released yet by the client's next command
+            self._release(client)
+
     def _drop(self, client: _Client) -> None:
         client.gone = True
         self._clients.discard(client)
@@ -259,8 +263,7 @@ class SocketcandServer:
             self._write(client, reply.encode("ascii", "replace"))
         if outcome.entered_raw:
             client.held = []
-            self._loop.call_later(self.settle, lambda: client.held is not None
-                                  and self._release(client))
+            self._loop.call_later(self.settle, self._release_held, client)
         if outcome.frame is not None:
             self._from_client(client, outcome.frame)
         return not outcome.close

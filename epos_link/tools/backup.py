@@ -148,8 +148,8 @@ def backup(client: EposClient, node: int, od: canopen.ObjectDictionary, progress
             continue
         var = directory.variable(info.index, info.subindex)
         assert var is not None
-        var.value = value
-        var.value_raw = None
+        var.value = value  # type: ignore[assignment]  # canopen types it narrower than it takes
+        var.value_raw = None  # type: ignore[attr-defined]  # canopen's DCF writer reads it
         outcomes.append(Outcome(info, "read", info.type.format(value)))
     progress.clear()
     return outcomes
@@ -290,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{prog}: node {args.node} is in operation enabled (statusword 0x{sw:04X}): "
                       "disable it first, or pass --force", file=sys.stderr)
                 return 2
-            outcomes: list[Outcome] = []
+            outcomes = []
             try:
                 restore(client, args.node, od, dry_run=args.dry_run, progress=progress, out=sys.stdout,
                         changes_only=args.changes_only, outcomes=outcomes)

@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import logging
 import time
+from functools import partial
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Final, Optional, Tuple
 
@@ -176,7 +177,7 @@ class PdoStatus:
         """The bus worker is ready: map every node there, one job each."""
         self._post = post
         for node_id in self._nodes:
-            post(lambda nid=node_id: self.map(nid))
+            post(partial(self.map, node_id))
 
     def _booted(self, node_id: int) -> None:
         # CAN notifier thread: drop the values now, map on the bus worker later.

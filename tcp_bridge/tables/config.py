@@ -37,7 +37,7 @@ from .units import Number, parse_value
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised on 3.10 only
-    import tomli as tomllib
+    import tomli as tomllib  # type: ignore[import-not-found, no-redef, unused-ignore]
 
 TOP_LEVEL = ("bridge", "bus", "axis")
 AXIS_KEYS = ("addr", "device", "internal", "bus_offset", "node_id", "position_factor",
