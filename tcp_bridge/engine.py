@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from functools import partial
 from importlib import metadata
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
 
@@ -84,9 +85,12 @@ class Engine:
         timing = Timing(s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay,
                         s.poll_interval)
         # Fail-fast buses (tcp_bridge.bus.health, tcp_bridge.bus.failfast): one guard per bus.
+        # A backend's describe_silence words its silent device in the log (URL, what to check).
+        describers = {getattr(b, "name", None): getattr(b, "describe_silence", None)
+                      for b in self.backends}
         self.guards: Dict[str, BusGuard] = {
             bus: BusGuard(BusHealth(bus, health_clock, probe_interval=s.probe_interval,
-                                    on_change=log_change),
+                                    on_change=partial(log_change, describe=describers.get(bus))),
                           {a.node_id: nodes[a.addr] for a in table.axes.values()
                            if a.bus == bus and a.addr in nodes},
                           (link_probes or {}).get(bus))

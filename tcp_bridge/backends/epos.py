@@ -47,6 +47,8 @@ class EposBackend:
                 why = str(exc) if url in str(exc) else f"cannot open {url}: {exc}"
                 raise ConfigError(f"bus {bus.name}: {why}") from None
         self.client = client
+        self.url: str = getattr(client.transport, "url", "") or f"bus {bus.name}'s link"
+        self.baudrate: Optional[int] = options.get("baudrate")
         self.nodes: Dict[int, Any] = {}
 
     def node(self, node_id: int) -> Any:
@@ -75,6 +77,13 @@ class EposBackend:
         """
         self.client.read_object(0, 0x1000, 0, timeout=min(self.client.timeout, PROBE_TIMEOUT),
                                 retries=0)
+
+    def describe_silence(self, why: str) -> str:
+        """One line for a failed :meth:`probe`: the device, its URL, what to check."""
+        from epos_link.transports import silence_hint
+
+        return (f"the EPOS4 at {self.url} does not answer ({why}): "
+                f"{silence_hint(self.url, self.baudrate)}")
 
     def close(self) -> None:
         self.client.close()
