@@ -29,6 +29,7 @@ from typing import Any, Callable, Dict, Optional, Sequence
 
 import canopen
 
+from ..errors import BusUnavailable
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .pdo_status import PdoSettings, PdoStatus, StatusFeed
 
@@ -75,6 +76,16 @@ def _reason(exc: BaseException, channel: Any) -> str:
     return str(exc)
 
 
+def _not_there(exc: BaseException) -> bool:
+    """The adapter is missing or down now (OSError, python-can's CanInitializationError),
+    as opposed to an option or interface name the configuration got wrong."""
+    import can
+
+    if isinstance(exc, can.CanInterfaceNotImplementedError):
+        return False
+    return isinstance(exc, (OSError, can.CanInitializationError))
+
+
 def object_dictionary(eds: Any, node_id: int) -> Any:
     """The dictionary of a node: ``"default"`` (EPOS4 EDS), ``"none"`` or an EDS/DCF path."""
     if eds in (None, "none", ""):
@@ -108,9 +119,12 @@ class CanopenBackend:
         try:
             self.network.connect(**options)
         except Exception as exc:  # python-can raises CanError, OSError, ValueError, ImportError...
-            raise ConfigError(f"bus {bus.name}: cannot open CAN interface "
-                              f"{options.get('interface', '(python-can default)')} "
-                              f"{options.get('channel', '')}: {_reason(exc, options.get('channel', 'can0'))}") from None
+            why = (f"bus {bus.name}: cannot open CAN interface "
+                   f"{options.get('interface', '(python-can default)')} "
+                   f"{options.get('channel', '')}: {_reason(exc, options.get('channel', 'can0'))}")
+            if _not_there(exc):  # serve opens it again later (tcp_bridge.backends.reopen)
+                raise BusUnavailable(why) from None
+            raise ConfigError(why) from None
         self.nodes: Dict[int, FedNode] = {}
 
     def node(self, node_id: int) -> FedNode:
