@@ -292,10 +292,10 @@ class TcpLink:
     (:meth:`_refuse`), instead of waiting in the listen backlog unanswered.
     A host that has gone is noticed before a new one is judged: its end of
     stream is read first, so commands run one after the other (each closing
-    its connection as the next connects) are all served, never refused.
+    its connection as the next connects) are all served, never refused. (On
+    one machine a closed connection's end of stream is queued before the next
+    command can connect.)
     """
-
-    CLOSING_GRACE = 0.25  # seconds a seemingly connected host gets to show that it has gone
 
     # What a second host reads before its connection is closed. Not a frame (no
     # DLE STX), so a MAXON SERIAL V2 client discards it as junk and then sees the
@@ -332,16 +332,12 @@ class TcpLink:
 
                 def read(timeout: float, conn: socket.socket = conn) -> Optional[bytes]:
                     ready, _, _ = select.select([conn, self.sock], [], [], timeout)
-                    if self.sock in ready and conn not in ready:
-                        # A new host while this one seems connected: it may be closing
-                        # (its end of stream not read yet, as after a request that kept
-                        # the device busy). Give its end a moment before refusing.
-                        ready, _, _ = select.select([conn], [], [], self.CLOSING_GRACE)
-                        if not ready:
-                            self._refuse()
-                            return b""
                     if conn not in ready:
+                        if self.sock in ready:
+                            self._refuse()  # this host is still connected
                         return b""
+                    # This host first: its end of stream (it has gone, perhaps while a
+                    # request kept the device busy) lets a waiting new host in.
                     try:
                         data = conn.recv(4096)
                     except OSError:
