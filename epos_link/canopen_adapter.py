@@ -28,6 +28,7 @@ timeouts, framing and link failures become ``SdoCommunicationError``.
 from __future__ import annotations
 
 import io
+import threading
 from typing import Any, Callable, Optional, Union
 
 import canopen
@@ -37,7 +38,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from canopen.sdo.base import SdoBase
 
 from .canopen_gateway import (GatewayLimitationError, GatewayNetwork, GatewayNmt, NmtView,
-                              limitation as _limitation, nmt_view, probe)
+                              gateway_network, limitation as _limitation, nmt_view, probe)
 from .client import EposClient
 from .errors import (DeviceError, EposError, EposTimeoutError, GatewayNotSupportedError,
                      RemoteProtocolError, TransportError)
@@ -143,6 +144,8 @@ class _GatewayNodeMixin:
 
     _epos_client: EposClient
     _link_node: Optional[int] = None
+    _shared_url: Optional[str] = None  # opened by URL: the link is shared (_LINKS)
+    _owns_link = True  # False for a node of network.add_node: the network's link
 
     def add_sdo(self, rx_cobid: int, tx_cobid: int) -> EposSdoClient:
         # RemoteNode.__init__ calls this; building the client here (instead of
@@ -154,7 +157,8 @@ class _GatewayNodeMixin:
 
     def _attach_gateway(self) -> None:
         node: Any = self
-        network = GatewayNetwork(self._epos_client)
+        network = gateway_network(self._epos_client)  # one per link, as one bus
+        network.nodes.setdefault(node.id, node)
         node.nmt = GatewayNmt(node.id, self._epos_client)
         node.network = network
         for part in (node.sdo, node.pdo, node.tpdo, node.rpdo, node.nmt, node.emcy):
@@ -168,8 +172,15 @@ class _GatewayNodeMixin:
         return self._epos_client
 
     def close(self) -> None:
-        """Close the link (and the client) this node was opened with."""
-        self._epos_client.close()
+        """Close the link (and the client) this node was opened with. A node opened by
+        URL releases the link instead: it closes with the last such node. A node of
+        ``network.add_node`` leaves the link to the nodes that opened it."""
+        if self._shared_url is not None:
+            url, self._shared_url = self._shared_url, None
+            _LINKS.release(url, self._epos_client)
+        elif self._owns_link:
+            self._owns_link = False
+            self._epos_client.close()
 
     def __enter__(self) -> Any:
         return self
@@ -271,6 +282,10 @@ def connect_node(url: Union[str, EposClient], node_id: int,
     """A canopen node reached through the EPOS4 at ``url`` (any epos_link URL) or
     through an open :class:`EposClient` shared by several nodes.
 
+    Several nodes of one link in one program: call it again with the same ``url``
+    (the link is opened once and shared, see :class:`_Links`), with
+    ``node.epos_client``, or use ``node.network.add_node(id, od)``.
+
     ``node_id`` 0 (or the EPOS4's own id) is the connected EPOS4 itself; any other
     id is a node on its CAN bus. ``od`` is an EDS/DCF path or an ObjectDictionary;
     by default the shipped EPOS4 EDS. ``profile="402"`` returns a ``BaseNode402``.
@@ -282,10 +297,10 @@ def connect_node(url: Union[str, EposClient], node_id: int,
         raise ValueError(f"node id must be 0..127, got {node_id}")
     if isinstance(url, EposClient):
         client = url
-        if gateway_node_id is not None:
-            client.gateway_node_id = gateway_node_id
     else:
-        client = EposClient.open(url, gateway_node_id=gateway_node_id, **client_options)
+        client = _LINKS.acquire(url, client_options)
+    if gateway_node_id is not None:
+        client.gateway_node_id = gateway_node_id
     try:
         link_node: Optional[int] = None
         canopen_id = node_id
@@ -303,11 +318,52 @@ def connect_node(url: Union[str, EposClient], node_id: int,
             od = canopen.import_od(od, canopen_id)
             add_value_descriptions(od)
         cls = EposNode402 if profile == "402" else EposRemoteNode
-        return cls(canopen_id, od, client, link_node)
+        node = cls(canopen_id, od, client, link_node)
     except Exception:
         if not isinstance(url, EposClient):
-            client.close()
+            _LINKS.release(url, client)
         raise
+    if not isinstance(url, EposClient):
+        node._shared_url = url
+    return node
+
+
+class _Links:
+    """The links ``connect_node`` opened by URL, shared by the nodes opened on each.
+
+    A link serves one host at a time (the EPOS4 answers one request at a time, guide
+    2.2.1; a serial port is opened exclusively, and ``epos-link sim --tcp`` takes one
+    connection): a second ``connect_node(url, ...)`` in one program reuses the
+    first's :class:`EposClient`, as ``connect_node(node.epos_client, ...)`` does.
+    The link closes when the last node opened by URL is closed. The options of the
+    call that opened it (timeout, retries, baudrate, trace) hold for all its nodes.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._open: dict[str, tuple[EposClient, int]] = {}  # url -> (client, holders)
+
+    def acquire(self, url: str, options: dict[str, Any]) -> EposClient:
+        with self._lock:
+            client, holders = self._open.get(url, (None, 0))
+            if client is None:
+                client = EposClient.open(url, **options)
+            self._open[url] = (client, holders + 1)
+            return client
+
+    def release(self, url: str, client: EposClient) -> None:
+        with self._lock:
+            held, holders = self._open.get(url, (None, 0))
+            if held is not client:
+                return
+            if holders > 1:
+                self._open[url] = (client, holders - 1)
+                return
+            del self._open[url]
+        client.close()
+
+
+_LINKS = _Links()
 
 
 NODE_ID_OBJECT = 0x2000  # maxon EPOS4: Node-ID (DIP switch or software setting)

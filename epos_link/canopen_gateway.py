@@ -44,6 +44,13 @@ scan`` does (:meth:`EposClient.scan`: ReadObject 1000h, short timeout, no
 retry) and fills ``scanner.nodes`` as canopen does on a bus. It returns when
 done: each absent node costs the gateway's SDO timeout.
 
+``network.add_node(node_id, od)`` adds a node reached through the same
+gateway, as canopen adds a ``RemoteNode`` to a bus: one :class:`GatewayNetwork`
+per link (:func:`gateway_network`), shared by every node object opened on its
+:class:`EposClient`, so ``node.network.add_node(3)`` and ``network[3]`` work as
+on a bus. ``add_node(..., upload_eds=True)`` (0x1021 read by a raw SDO client)
+and a ``RemoteNode`` built for a CAN bus are refused, naming what to do.
+
 Anything else that needs a raw CAN frame raises
 :class:`GatewayLimitationError`, naming the service.
 """
@@ -252,6 +259,29 @@ class GatewayNetwork(canopen.Network):
         self.nmt = GatewayNmt(0, client)  # canopen's broadcast NmtMaster(0)
         self.nmt.network = self
 
+    def add_node(self, node: Any, object_dictionary: Any = None,
+                 upload_eds: bool = False) -> Any:
+        """canopen's ``add_node``: a node of this link, reached through its gateway.
+
+        ``node`` is a node id (with ``object_dictionary``: an EDS/DCF path or an
+        ObjectDictionary, by default the shipped EPOS4 EDS) or a node object that
+        :func:`epos_link.connect_node` made for this link."""
+        from .canopen_adapter import connect_node
+
+        if upload_eds:
+            raise limitation("upload_eds (0x1021 read by a raw SDO client): pass the "
+                             "node's EDS as object_dictionary")
+        if isinstance(node, int):
+            node = connect_node(self.client, node, object_dictionary)
+            node._owns_link = False  # as on a bus: the network's nodes do not own the link
+        elif getattr(node, "epos_client", None) is not self.client:
+            raise TypeError(
+                f"{type(node).__name__} {node.id} was built for a CAN bus; through the gateway "
+                f"add it by id, network.add_node({node.id}, od), or connect_node(client, "
+                f"{node.id}, od)")
+        self.nodes[node.id] = node
+        return node
+
     def connect(self, *args: Any, **kwargs: Any) -> "GatewayNetwork":
         raise limitation("a CAN bus connection")
 
@@ -272,6 +302,23 @@ class GatewayNetwork(canopen.Network):
 
     def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
         raise limitation(f"periodic CAN frames (COB-ID 0x{can_id:03X}: PDO, SYNC or heartbeat)")
+
+
+_networks_lock = threading.Lock()  # not _views_lock: a new network takes that one
+
+
+def gateway_network(client: EposClient) -> GatewayNetwork:
+    """The one :class:`GatewayNetwork` of the link ``client`` drives.
+
+    Kept on the client itself (a reference cycle the collector frees with it),
+    not in a registry: the network holds its client and its nodes.
+    """
+    with _networks_lock:
+        network = getattr(client, "_canopen_network", None)
+        if network is None:
+            network = GatewayNetwork(client)
+            client._canopen_network = network  # type: ignore[attr-defined]
+        return network
 
 
 def describe_cob_id(can_id: int) -> str:

@@ -4,7 +4,7 @@ Each subcommand lives in its own module with ``add_arguments(parser)`` and
 ``run(args) -> int``; modules are imported only when their command runs, so a
 missing optional dependency breaks only the command that needs it.
 Exit codes: 0 success, 1 the device or the data reported an error,
-2 usage errors, timeouts and unreachable ports.
+2 usage errors, timeouts, a silent EPOS4 and unreachable ports.
 """
 from __future__ import annotations
 

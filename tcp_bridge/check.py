@@ -21,6 +21,13 @@ bus, an ``EposClient`` on a serial/USB link, or the embedded simulator. The
 state file is read (so that inversion and offset of S22/S25 apply to the
 position shown) and never written.
 
+The link before the nodes: a backend with a ``probe()`` (``epos``, ``sim``:
+a read of the EPOS4's own device type as node 0) is probed first, up to
+:data:`PROBE_ATTEMPTS` times. When its device gives no answer at all, every
+axis of the bus is "device silent", with one line naming the device's URL and
+what to check (port, baud rate, power), and its nodes are not asked: a node is
+called absent only when the device in front of it answers.
+
 After the table, one line per bus says what stops its axes if the host (the
 bridge) dies (:func:`liveness_notes`; docs/hardware.md, "When the host dies"):
 the drives' heartbeat consumer on a ``canopen`` bus with ``heartbeat_ms``;
@@ -28,9 +35,10 @@ nothing from the host otherwise, nor through an EPOS4 gateway, which forwards
 SDO only. With ``--json`` these lines go to stderr. The check itself sends no
 heartbeat: it opens buses, the engine is what starts the heartbeat.
 
-Time: an absent node costs one SDO timeout (its first read), then the check
-moves on; one that answers costs a dozen uploads. Buses are checked one after
-the other, each closed before the next opens.
+Time: a silent device costs its probes (under a second: ``PROBE_TIMEOUT`` of
+:mod:`tcp_bridge.backends.epos` each); an absent node costs one SDO timeout
+(its first read), then the check moves on; one that answers costs a dozen
+uploads. Buses are checked one after the other, each closed before the next opens.
 """
 from __future__ import annotations
 
@@ -42,9 +50,10 @@ from typing import Any, Callable, Dict, List, Optional
 from .tables.axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
 from .errors import BridgeError, DeviceFailure
 from .tables.parameters import ParameterStore
-from .preflight import AxisReport, Reading, as_json, judge, no_bus, no_drive
+from .preflight import AxisReport, Reading, as_json, device_silent, judge, no_bus, no_drive
 from .preflight import table as format_table
-from .bus.sdo import NodeSilent, SdoPort
+from .bus.health import Silence
+from .bus.sdo import NodeSilent, SdoPort, silence_of
 
 Opener = Callable[[BusConfig, List[AxisConfig]], Any]
 
@@ -54,6 +63,7 @@ IDENTITY = (("1018h/01", "vendor_id", 0x1018, 1), ("1018h/02", "product_code", 0
 DRIVE = (("6041h", "statusword", 0x6041, 0), ("6061h", "mode", 0x6061, 0),
          ("6064h", "position", 0x6064, 0))
 EPOS4_UNITS = (("60A9h", "velocity_unit", 0x60A9, 0), ("3000h/05", "sensor_resolution", 0x3000, 5))
+PROBE_ATTEMPTS = 3  # a lost exchange (a port just opened) is not a silent device
 
 
 def read_node(port: SdoPort, device: DeviceCode) -> Reading:
@@ -174,6 +184,9 @@ def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
     except (ConfigError, OSError) as exc:
         return {a.addr: no_bus(a, str(exc)) for a in axes}
     try:
+        silent = _device_silence(bus, backend)
+        if silent is not None:
+            return {a.addr: device_silent(a, silent) for a in axes}
         out: Dict[int, AxisReport] = {}
         for axis in axes:
             port = SdoPort(backend.node(axis.node_id), name=f"axis {axis.addr}")
@@ -181,6 +194,27 @@ def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
         return out
     finally:
         backend.close()
+
+
+def _device_silence(bus: BusConfig, backend: Any) -> Optional[str]:
+    """Why the bus's own device is silent (one line naming it), or None if it answers
+    or the backend has no ``probe()`` (a CAN adapter: its nodes are asked directly)."""
+    probe = getattr(backend, "probe", None)
+    if not callable(probe):
+        return None
+    why = ""
+    for _ in range(PROBE_ATTEMPTS):
+        try:
+            probe()
+            return None
+        except Exception as exc:
+            if silence_of(exc) is not Silence.LINK:
+                return None  # an abort is an answer: the device is there
+            why = str(exc)
+    describe = getattr(backend, "describe_silence", None)
+    if callable(describe):
+        return f"bus {bus.name}: {describe(why)}"
+    return f"bus {bus.name}: its device does not answer ({why})"
 
 
 # -- command line (wired into tcp_bridge.cli) ------------------------------------------------

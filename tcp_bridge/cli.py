@@ -11,10 +11,11 @@
     tcp-bridge --version
 
 Expected failures (a bad argument, a port in use, an unknown bind address, a
-bad axis table, an unreachable CAN adapter, a refused connection) print one
-line and exit with status 2; ``send`` exits 0 when every reply is ACK, 1
-otherwise; ``check`` exits 0 when every axis answers as configured, 1
-otherwise. A request given to ``send`` with CR or LF inside is several
+bad axis table, a refused connection) print one line and exit with status 2;
+``send`` exits 0 when every reply is ACK, 1 otherwise; ``check`` exits 0 when
+every axis answers as configured, 1 otherwise. A bus whose adapter or EPOS4
+cannot be opened does not stop ``serve``: it is logged, answers NAK and is
+opened in the background (:mod:`tcp_bridge.backends.reopen`). A request given to ``send`` with CR or LF inside is several
 requests, each printed with its own reply, as the gateway reads it (spec 2.2.1:
 one request per CR-terminated line). ``serve`` stops on SIGINT or SIGTERM, finishing the transfers in
 flight; a second signal exits at once (status 128 + signal number), waiting

@@ -26,16 +26,17 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from functools import partial
 from importlib import metadata
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
 
 from .bus.failfast import BusGuard, log_change
-from .bus.health import BusHealth
+from .bus.health import BusHealth, Silence
 from .bus.scheduler import Scheduler
 from .bus.sdo import SdoPort
 from .bus.shared_reads import BUSY, SHARE_WINDOW, SharedReads
 from .bus.workers import BusWorker
-from .errors import InvalidCommand
+from .errors import BusUnavailable, InvalidCommand
 from .motion import Timing
 from .plan.axis import AxisRuntime
 from .plan.job import Job
@@ -73,6 +74,7 @@ class Engine:
                  params: Optional[ParameterStore] = None, backends: Sequence[Any] = (),
                  job_timeout: float = 60.0, share_window: float = SHARE_WINDOW,
                  link_probes: Optional[Mapping[str, Callable[[], Any]]] = None,
+                 unopened: Optional[Mapping[str, str]] = None,
                  health_clock: Callable[[], float] = time.monotonic,
                  **cia402_options: Any) -> None:
         self.table = table
@@ -84,14 +86,19 @@ class Engine:
         timing = Timing(s.ack_timeout, s.state_timeout, s.reset_timeout, s.reset_delay,
                         s.poll_interval)
         # Fail-fast buses (tcp_bridge.bus.health, tcp_bridge.bus.failfast): one guard per bus.
+        # A backend's describe_silence words its silent device in the log (URL, what to check).
+        describers = {getattr(b, "name", None): getattr(b, "describe_silence", None)
+                      for b in self.backends}
         self.guards: Dict[str, BusGuard] = {
             bus: BusGuard(BusHealth(bus, health_clock, probe_interval=s.probe_interval,
-                                    on_change=log_change),
+                                    on_change=partial(log_change, describe=describers.get(bus))),
                           {a.node_id: nodes[a.addr] for a in table.axes.values()
                            if a.bus == bus and a.addr in nodes},
                           (link_probes or {}).get(bus))
             for bus in sorted({a.bus for a in table.axes.values() if a.addr in nodes})
         }
+        for bus, why in (unopened or {}).items():  # silent from the start (logged once), before the
+            self.guards[bus].health.probed(None, Silence.LINK, why)  # workers probe it
         self.axes: Dict[int, AxisRuntime] = {}
         for addr, axis in table.axes.items():
             node = nodes.get(addr)
@@ -199,23 +206,29 @@ class Engine:
 
 def build_engine(table: AxisTable, *, params: Optional[ParameterStore] = None,
                  **options: Any) -> Engine:
-    """Open every bus's backend (registry in :mod:`tcp_bridge.backends`) and an Engine."""
-    from .backends import open_backend
+    """Open every bus's backend (registry in :mod:`tcp_bridge.backends`) and an Engine.
+
+    A bus whose device cannot be opened now (BusUnavailable) does not stop the others:
+    it starts silent and its probes open it (:mod:`tcp_bridge.backends.reopen`)."""
+
+    from .backends.reopen import UnopenedBackend
 
     nodes: Dict[int, Any] = {}
     backends: List[Any] = []
     probes: Dict[str, Callable[[], Any]] = {}
+    unopened: Dict[str, str] = {}
     try:
         for name, bus in table.buses.items():
             axes: List[AxisConfig] = [a for a in table.axes.values() if a.bus == name and a.has_node]
             if not axes:
                 continue
+            opener = partial(_open, table, name, bus, axes)
             try:
-                backend = open_backend(bus, axes)
-            except ConfigError:
-                raise
-            except (TypeError, ValueError) as exc:  # a bus option of the wrong type or value
-                raise ConfigError(f"{table.source}: [bus.{name}]: {exc}") from None
+                backend = opener()
+            except BusUnavailable as exc:
+                # Not there now: served as a silent bus, opened by its probes (backends/reopen).
+                backend = UnopenedBackend(name, opener, str(exc))
+                unopened[name] = backend.why
             backends.append(backend)
             if callable(getattr(backend, "probe", None)):
                 probes[name] = backend.probe
@@ -225,4 +238,17 @@ def build_engine(table: AxisTable, *, params: Optional[ParameterStore] = None,
         for backend in backends:
             backend.close()
         raise
-    return Engine(table, nodes, params=params, backends=backends, link_probes=probes, **options)
+    return Engine(table, nodes, params=params, backends=backends, link_probes=probes,
+                  unopened=unopened, **options)
+
+
+def _open(table: AxisTable, name: str, bus: Any, axes: List[AxisConfig]) -> Any:
+    """Open one bus's backend; a bus option of the wrong type or value is a ConfigError."""
+    from .backends import open_backend
+
+    try:
+        return open_backend(bus, axes)
+    except (ConfigError, BusUnavailable):
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{table.source}: [bus.{name}]: {exc}") from None

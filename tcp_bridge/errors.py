@@ -15,7 +15,11 @@
      +-- ReplyOverflow (ValueError)       reply NAK: a value read from the device cannot be
      |                                    written into the 30-byte reply (spec 2.2.2)
      +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
-                                          format of spec 2.2.2 / 2.3.2
+     |                                    format of spec 2.2.2 / 2.3.2
+     +-- BusUnavailable (OSError)         a bus's device or adapter cannot be opened now
+                                          (unplugged, refused, powered off): not a mistake
+                                          of the table; serve opens it again later
+                                          (tcp_bridge.backends.reopen)
 
 The spec (PSI TCP-IP to CANopen gateway, rev 2.3, 2.2.2) has three answers:
 ACK (executed), NAK (not executed; the drive did not answer) and CAN (the
@@ -108,3 +112,8 @@ class MalformedReply(BridgeError, ValueError):
 
 class DependencyFailed(DeviceFailure):
     """An earlier request whose value this one was resolved against was not executed."""
+
+
+class BusUnavailable(BridgeError, OSError):
+    """A bus's device or adapter cannot be opened now: a port that is missing, busy or
+    refused, a CAN interface that is down. A configuration mistake is a ConfigError."""

@@ -7,6 +7,9 @@ first failing rule decides:
 
 =============== =============================================================
 no bus          the bus of the axis could not be opened (adapter, URL, driver)
+device silent   the bus's own device (the EPOS4 on the link) does not answer a
+                read of itself: wrong port or baud rate, no power. Its nodes
+                are not asked, so none is called absent for it
 absent          the node did not answer its first read (0x1000 device type,
                 mandatory in CiA 301 V4.2 7.5.2.1): wrong node id, bit rate,
                 cabling, power
@@ -50,6 +53,7 @@ class Verdict(Enum):
     NO_DRIVE = "no drive"
     ABSENT = "absent"
     NO_BUS = "no bus"
+    DEVICE_SILENT = "device silent"
     WRONG_DEVICE = "wrong device"
     UNITS_UNKNOWN = "units unknown"
     UNITS_MISMATCH = "units mismatch"
@@ -130,6 +134,10 @@ def no_bus(axis: AxisConfig, why: str) -> AxisReport:
     return AxisReport(axis, Verdict.NO_BUS, why, Reading())
 
 
+def device_silent(axis: AxisConfig, why: str) -> AxisReport:
+    return AxisReport(axis, Verdict.DEVICE_SILENT, why, Reading())
+
+
 def no_drive(axis: AxisConfig) -> AxisReport:
     return AxisReport(axis, Verdict.NO_DRIVE, "internal axis without a drive (node id 0)",
                       Reading())
@@ -194,18 +202,22 @@ def _cells(report: AxisReport) -> Tuple[str, ...]:
     mode = "" if r.mode is None else MODE_NAMES.get(r.mode, str(r.mode))
     node = f"{axis.bus}/{axis.node_id}"
     position = "" if report.position is None else f"{report.position:g}"
-    unknown = report.verdict in (Verdict.NO_BUS, Verdict.ABSENT, Verdict.NO_DRIVE)
+    unknown = report.verdict in (Verdict.NO_BUS, Verdict.DEVICE_SILENT, Verdict.ABSENT,
+                                 Verdict.NO_DRIVE)
     return (str(axis.addr), node, report.verdict.value, r.name or "",
             "" if r.serial is None else f"{r.serial:#x}", report.state or "", mode, position,
             "" if unknown else report.units)
 
 
 def table(reports: "list[AxisReport]") -> str:
-    """One row per axis, a detail line under each that is not ok."""
+    """One row per axis, a detail line under each that is not ok; a detail that
+    several axes share (their bus's, which names it) under the first of them only."""
     lines = [_line(HEADER)]
+    shown = set()
     for report in reports:
         lines.append(_line(_cells(report)))
-        if report.detail and not report.ok:
+        if report.detail and not report.ok and report.detail not in shown:
+            shown.add(report.detail)
             lines.append(f"     {report.detail}")
     return "\n".join(lines)
 

@@ -174,6 +174,42 @@ def test_a_bus_that_cannot_open_is_a_row_per_axis_naming_the_url_once(tmp_path: 
     assert detail.count(missing) == 1 and "No such file or directory" in detail
 
 
+def test_a_silent_device_is_one_line_for_its_bus_and_no_node_is_called_absent(
+        tmp_path: Path) -> None:
+    """Bus can1's EPOS4 reads and never answers; bus can2 (the embedded simulator) works."""
+    from tests.test_cli_scan import Listening
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.link import LinkOptions, TcpLink
+
+    sim = Epos4Simulator(1, [2])
+    device = Listening(sim)
+    link = TcpLink(device, LinkOptions(silent=True)).start()
+    config = tmp_path / "axes.toml"
+    config.write_text(f'[bus.can1]\nbackend = "epos"\nurl = "{link.url}"\n'
+                      '[bus.can2]\nbackend = "sim"\n'
+                      '[[axis]]\nnode_id = 1\n[[axis]]\nnode_id = 2\n'
+                      '[[axis]]\nnode_id = 1\nbus_offset = 100000\n')
+    try:
+        out = cli("check", "--config", str(config))
+        as_json = cli("check", "--config", str(config), "--json")
+    finally:
+        link.close()
+        sim.close()
+    assert out.returncode == 1, out.stdout + out.stderr
+    rows = [line.split() for line in out.stdout.splitlines() if line[:1].isdigit()]
+    assert [r[:4] for r in rows] == [["1", "can1/1", "device", "silent"],
+                                     ["2", "can1/2", "device", "silent"],
+                                     ["3", "can2/1", "found", "EPOS4"]]
+    details = [line.strip() for line in out.stdout.splitlines() if line.startswith("     ")]
+    assert len(details) == 1, out.stdout  # one line for the bus, not one per axis
+    assert details[0].startswith(f"bus can1: the EPOS4 at {link.url} does not answer")
+    assert "baud rate" in details[0] and "power" in details[0] and "absent" not in out.stdout
+    verdicts = [json.loads(line)["verdict"] for line in as_json.stdout.splitlines()]
+    assert verdicts == ["device silent", "device silent", "found"] and as_json.returncode == 1
+    # Only the probes of the EPOS4 itself reached it (3 per run): no node was asked.
+    assert device.frames <= 2 * 3
+
+
 @pytest.mark.parametrize("args, words", [
     (["--config", "/nonexistent/axes.toml"], "cannot read axis table"),
     (["--simulate", "--axes", "0"], "--axes must be 1..60"),

@@ -74,6 +74,19 @@ def test_silent_device_is_probed_every_interval_and_reopens_on_an_answer(
     assert len(messages) == 2  # one line per change of state, none per probe
 
 
+def test_a_backend_words_its_silent_device_in_the_log(caplog: pytest.LogCaptureFixture) -> None:
+    h, clock = health()
+    h.on_change = lambda change: log_change(
+        change, describe=lambda why: f"the EPOS4 at socket://x:1 does not answer ({why}): check it")
+    with caplog.at_level(logging.WARNING, logger="tcp_bridge.bus.failfast"):
+        h.probed(None, Silence.LINK, "timeout")
+        h.probed(None, None)
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages[0] == ("bus can1: the EPOS4 at socket://x:1 does not answer (timeout): check "
+                           "it; its commands answer NAK at once until a probe gets an answer")
+    assert messages[1].startswith("bus can1: device answers again")
+
+
 def test_each_change_of_state_is_reported_once() -> None:
     h, clock = health()
     changes: List[Change] = []

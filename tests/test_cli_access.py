@@ -38,6 +38,7 @@ SCRIPT: dict[bytes, Any] = dict([
     # NMT start node 2 (Table 3-14)
     (reference_frame(0x70, struct.pack("<HH", 2, 1)), answer(0)),
     (read_request(3, 0x6064, 0), None),  # node 3 never answers
+    read_pair(0, 0x1000, 0, struct.pack("<I", 0x00020192)),  # the EPOS4 itself answers
 ])
 
 
@@ -146,6 +147,18 @@ def test_device_error_exits_1(dev: SocketResponder, capsys: pytest.CaptureFixtur
 def test_timeout_exits_2(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = cli(capsys, "read", dev.url, "3", "0x6064", "0", "--timeout", "0.05")
     assert code == 2 and "timeout" in err and "no answer within 0.05 s" in err
+    assert "does not answer" not in err  # the EPOS4 itself answered: the node is to blame
+
+
+def test_a_silent_epos4_is_named_not_the_node(capsys: pytest.CaptureFixture[str]) -> None:
+    """Nothing answers at all, not even the EPOS4 asked as node 0 (guide chapter 5): one
+    line naming the link and what to check, for a node behind it and for node 0."""
+    with SocketResponder({}) as silent:
+        for node in ("3", "0"):
+            code, _, err = cli(capsys, "read", silent.url, node, "0x6064", "0", "--timeout", "0.05")
+            assert code == 2 and len(err.splitlines()) == 1, err
+            assert f"the EPOS4 at {silent.url} does not answer" in err
+            assert "baud rate" in err and "power" in err and "node id" not in err
 
 
 def test_unreachable_port_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
@@ -173,7 +186,8 @@ def test_nmt(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_scan(capsys: pytest.CaptureFixture[str]) -> None:
-    script = dict([read_pair(1, 0x1000, 0, struct.pack("<I", 0x00020192)),
+    script = dict([read_pair(0, 0x1000, 0, struct.pack("<I", 0x00020192)),  # the link check
+                   read_pair(1, 0x1000, 0, struct.pack("<I", 0x00020192)),
                    *segmented_read_pairs(1, 0x1008, 0, b"EPOS4"),
                    *[read_pair(1, 0x1018, s, struct.pack("<I", v)) for s, v in ((1, 0xFB), (2, 2), (3, 3), (4, 4))],
                    read_pair(1, 0x1018, 4, b"", code=0x06090011)][:-1])

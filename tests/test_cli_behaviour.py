@@ -158,12 +158,26 @@ def test_an_unreachable_socket_is_named_once() -> None:
 
 
 def test_the_bridge_names_an_epos_bus_url_once(tmp_path: Path) -> None:
+    """A port that is not there does not stop the bridge (issue 24 point 2,
+    tests/test_bridge_late_bus.py): one log line names the bus and the URL once."""
+    import signal
+
     missing = str(tmp_path / "ttyACM9")
     config = tmp_path / "axes.toml"
     config.write_text(f'[bus.can1]\nbackend = "epos"\nurl = "{missing}"\n[[axis]]\nnode_id = 1\n')
-    line = one_line_exit_2(run("-m", "tcp_bridge.cli", "serve", "--config", str(config),
-                               "--port", "0", "--maintenance-port", "-1"))
-    assert line.count(missing) == 1 and line.startswith("tcp-bridge: bus can1: cannot open")
+    proc = subprocess.Popen([sys.executable, "-m", "tcp_bridge.cli", "serve", "--config", str(config),
+                             "--port", "0", "--maintenance-port", "-1",
+                             "--state-file", str(tmp_path / "state.toml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "listening on" in proc.stdout.readline()  # type: ignore[union-attr]
+        line = proc.stderr.readline()  # type: ignore[union-attr]
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert line.count(missing) == 1 and "bus can1: cannot open" in line, line
 
 
 def test_a_busy_serial_port_is_named() -> None:

@@ -6,6 +6,7 @@ import os
 import select
 import subprocess
 import sys
+import time
 from typing import Iterator
 
 import pytest
@@ -94,6 +95,43 @@ def test_node_timeout_is_honoured() -> None:
         sim.close()
     assert slow.returncode == 0 and slow.stdout.startswith("node   1"), slow.stderr
     assert fast.returncode == 2 and "no node answered" in fast.stderr
+
+
+class Listening:
+    """A simulated EPOS4 that counts the request frames it receives."""
+
+    def __init__(self, sim: Epos4Simulator) -> None:
+        self.sim = sim
+        self.frames = 0
+
+    def receive(self, data: bytes) -> list[bytes]:
+        self.frames += data.count(b"\x90\x02")  # DLE STX starts each frame (guide 2.2.3)
+        return self.sim.receive(data)
+
+    def reset(self) -> None:
+        self.sim.reset()
+
+
+def test_a_silent_link_is_one_line_and_no_node_is_tried() -> None:
+    """The EPOS4 reads and never answers (wrong baud rate, a dead converter): the scan asks
+    the EPOS4 itself (node 0) first and stops there, instead of 127 nodes timing out."""
+    sim = Epos4Simulator(1, [2])
+    device = Listening(sim)
+    link = TcpLink(device, LinkOptions(silent=True)).start()
+    try:
+        started = time.monotonic()
+        p = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", link.url],
+                           capture_output=True, text=True, timeout=WAIT)
+        took = time.monotonic() - started
+    finally:
+        link.close()
+        sim.close()
+    assert p.returncode == 2 and p.stdout == ""
+    assert p.stderr.splitlines() == [p.stderr.strip()], p.stderr  # one line
+    assert f"epos-link scan: the EPOS4 at {link.url} does not answer" in p.stderr
+    assert "baud rate" in p.stderr and "power" in p.stderr and "no node answered" not in p.stderr
+    assert device.frames <= 2  # node 0's read and its one retry: no node was tried
+    assert took < WAIT / 2  # about 2 s; 76 s before (every node timed out)
 
 
 def test_bad_node_list_is_a_usage_error() -> None:

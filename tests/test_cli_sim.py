@@ -88,3 +88,23 @@ def test_sim_records_a_trace(tmp_path) -> None:  # type: ignore[no-untyped-def]
     lines = [json.loads(line) for line in out.stdout.splitlines()]
     assert [(o["direction"], o["name"]) for o in lines] == [("TX", "ReadObject"), ("RX", "ReadObjectAnswer")]
     assert lines[1]["data"] == "92010200"
+
+
+def test_twenty_commands_in_a_row_all_succeed() -> None:
+    """Each ``scan`` ends on an absent node: the simulated gateway is still busy with it
+    (its SDO timeout) when the command has gone and the next one connects. The simulator
+    notices that the first host has gone before judging the next (issue 24 point 3):
+    none is refused, with no retry to hide a refusal (``--retries 0``)."""
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link", "sim", "--tcp", "127.0.0.1:0",
+                             "--drives", "2"], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    url = proc.stdout.readline().split()[-1]
+    try:
+        for i in range(10):
+            scan = cli("scan", url, "--nodes", "2,5", "--retries", "0")
+            assert scan.returncode == 0 and scan.stdout.startswith("node   2"), (i, scan.stderr)
+            read = cli("read", url, "2", "0x6041", "--retries", "0")
+            assert read.returncode == 0, (i, read.stderr)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0

@@ -326,6 +326,11 @@ class TcpLink:
 
     A second host while one is served is told so in one line and closed
     (:meth:`_refuse`), instead of waiting in the listen backlog unanswered.
+    A host that has gone is noticed before a new one is judged: its end of
+    stream is read first, so commands run one after the other (each closing
+    its connection as the next connects) are all served, never refused. (On
+    one machine a closed connection's end of stream is queued before the next
+    command can connect.)
     """
 
     # What a second host reads before its connection is closed. Not a frame (no
@@ -363,15 +368,17 @@ class TcpLink:
 
                 def read(timeout: float, conn: socket.socket = conn) -> Optional[bytes]:
                     ready, _, _ = select.select([conn, self.sock], [], [], timeout)
-                    if self.sock in ready:
-                        self._refuse()
                     if conn not in ready:
+                        if self.sock in ready:
+                            self._refuse()  # this host is still connected
                         return b""
+                    # This host first: its end of stream (it has gone, perhaps while a
+                    # request kept the device busy) lets a waiting new host in.
                     try:
                         data = conn.recv(4096)
                     except OSError:
                         return None
-                    return data or None
+                    return data or None  # None: the host has gone; the next one is accepted
 
                 try:
                     self.server.serve_stream(read, conn.sendall)

@@ -33,8 +33,9 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 from ..client import NMT_COMMANDS, EposClient
-from ..errors import LocalProtocolError
-from .common import add_link_options, add_url, guarded, open_client, parse_int
+from ..errors import EposTimeoutError, LocalProtocolError
+from .common import (add_link_options, add_url, guarded, open_client, parse_int,
+                     device_silent, require_device)
 from .objects import TYPE_NAMES, TYPES, ObjectInfo, ValueType, load_directory, meaning
 
 DEFAULT_TYPE = "u32"
@@ -221,7 +222,16 @@ def run(args: argparse.Namespace) -> int:
 
     def body() -> int:
         with open_client(args) as client:
-            return COMMANDS[name][1](args, client)
+            try:
+                return COMMANDS[name][1](args, client)
+            except EposTimeoutError as exc:
+                # A node behind a working gateway is answered for (0x05040000): no
+                # answer at all may be a silent EPOS4. Node 0 is the EPOS4 itself;
+                # for another node, ask it, and say so if it is silent.
+                if args.node == 0:
+                    raise device_silent(args.url, args.baud, exc) from exc
+                require_device(client, args.url, args.baud)
+                raise
 
     return guarded(prog, body)
 

@@ -3,17 +3,25 @@ and the one place that turns an exception into a message and an exit code.
 
 Exit codes (see :mod:`epos_link.cli`): 0 success; 1 the device answered with
 an error code, printed as ``0x%08X`` with its name; 2 usage errors, timeouts,
-unreachable ports and communication failures. Expected failures never print a
-traceback.
+unreachable ports, a silent EPOS4 and communication failures. Expected
+failures never print a traceback.
+
+A silent link is diagnosed before any node is blamed (:func:`require_device`):
+a node behind the EPOS4's gateway that is absent is answered by the gateway
+itself, with abort 0x05040000 (guide chapter 5), so no answer at all means the
+EPOS4 on the link is silent (wrong port or baud rate, no power). That is
+confirmed by asking the EPOS4 itself (node 0) and said in one line naming the
+URL and what to check.
 """
 from __future__ import annotations
 
 import argparse
 import math
 import sys
-from typing import Callable
+from typing import Callable, Optional
 
 from ..client import DEFAULT_RETRIES, DEFAULT_TIMEOUT, EposClient
+from ..transports import silence_hint
 from ..errors import (
     DeviceError,
     EposError,
@@ -108,6 +116,32 @@ def open_client(args: argparse.Namespace) -> EposClient:
     return client
 
 
+class DeviceSilent(EposTimeoutError):
+    """The EPOS4 on the link gave no answer to a read of its own device type (node 0)."""
+
+
+def require_device(client: EposClient, url: str, baudrate: Optional[int] = None) -> None:
+    """Raise :class:`DeviceSilent` unless the EPOS4 on the link answers a read of its
+    device type (1000h/00h as node 0: itself, guide chapter 5; CiA 301 7.5.2.1).
+
+    Any answer counts, an error code included. Costs one request when the device
+    answers; on a silent link the client's timeout and retries (``--timeout``,
+    ``--retries``: 0.5 s and one retry by default, about 2 s with the waits
+    for a late answer).
+    """
+    try:
+        client.read_object(0, 0x1000, 0)
+    except DeviceError:
+        return
+    except (EposTimeoutError, RemoteProtocolError) as exc:
+        raise device_silent(url, baudrate, exc) from exc
+
+
+def device_silent(url: str, baudrate: Optional[int], exc: BaseException) -> DeviceSilent:
+    """The one line of a silent EPOS4: the URL, what failed, what to check."""
+    return DeviceSilent(f"the EPOS4 at {url} does not answer ({exc}): {silence_hint(url, baudrate)}")
+
+
 def report(prog: str, exc: BaseException) -> int:
     """The message and exit code of an expected failure."""
     if isinstance(exc, DeviceError):
@@ -115,7 +149,9 @@ def report(prog: str, exc: BaseException) -> int:
         print(f"{prog}: device error 0x{exc.code:08X} {exc.name}" + (f" ({where})" if where else ""),
               file=sys.stderr)
         return 1
-    if isinstance(exc, EposTimeoutError):
+    if isinstance(exc, DeviceSilent):
+        print(f"{prog}: {exc}", file=sys.stderr)
+    elif isinstance(exc, EposTimeoutError):
         print(f"{prog}: timeout: {exc} (check the URL, cabling, node id and baud rate)", file=sys.stderr)
     elif isinstance(exc, TransportError):
         print(f"{prog}: link error: {exc}", file=sys.stderr)
@@ -136,5 +172,5 @@ def guarded(prog: str, body: Callable[[], int]) -> int:
         return report(prog, exc)
 
 
-__all__ = ["URL_HELP", "add_link_options", "add_url", "guarded", "non_negative_int", "open_client",
+__all__ = ["URL_HELP", "DeviceSilent", "device_silent", "require_device", "add_link_options", "add_url", "guarded", "non_negative_int", "open_client",
            "parse_int", "positive_float", "report"]

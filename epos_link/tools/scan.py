@@ -14,6 +14,12 @@ that wait is ``--node-timeout`` too when it is longer than the client's default.
 So an absent node costs the longer of ``--node-timeout`` and the gateway's
 timeout: a shorter ``--node-timeout`` cannot make the gateway faster, and a
 scan that skipped that wait would report nodes that are not there.
+
+Before any node, the EPOS4 on the link is asked for its own device type
+(:func:`~epos_link.tools.common.require_device`): a silent link (wrong port or
+baud rate, no power) is one line and exit 2 within a few seconds, instead of
+every node timing out in turn. Exit codes: 0 some node answered, 2 none did,
+the link is silent, or the command is wrong.
 """
 from __future__ import annotations
 
@@ -24,7 +30,8 @@ import time
 from typing import IO
 
 from ..client import DEFAULT_SCAN_TIMEOUT, EposClient, NodeInfo
-from .common import add_link_options, add_url, guarded, open_client, parse_int, positive_float
+from .common import (add_link_options, add_url, guarded, open_client, parse_int, positive_float,
+                     require_device)
 
 
 def node_list(text: str) -> list[int]:
@@ -111,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
         progress = Progress(sys.stderr, not args.no_progress and sys.stderr.isatty())
         started = time.monotonic()
         with open_client(args) as client:
+            require_device(client, args.url, args.baud)
             found = scan(client, args.nodes, args.node_timeout, json_lines=args.json,
                          out=sys.stdout, progress=progress)
         if not found:

@@ -10,7 +10,7 @@ dependency (pyusb, libusb) breaks only its own scheme.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import Any, Optional
 
 from .base import Transport
 
@@ -21,6 +21,7 @@ REGISTRY: dict[str, str] = {
     "replay": "epos_link.transports.replay:open_replay",
 }
 DEFAULT = "epos_link.transports.serial:open_serial"
+DEFAULT_BAUDRATE = 115200  # guide 2.3.2; the serial transport's default (no pyserial import here)
 
 
 def open_transport(url: str, **options: Any) -> Transport:
@@ -32,4 +33,16 @@ def open_transport(url: str, **options: Any) -> Transport:
     return transport
 
 
-__all__ = ["Transport", "open_transport", "REGISTRY"]
+def silence_hint(url: str, baudrate: Optional[int] = None) -> str:
+    """What to check when the device on ``url`` gives no answer at all: one clause.
+
+    A silent link is told apart from absent nodes by asking the EPOS4 itself
+    (node 0, guide chapter 5), so this names the link, never a node id.
+    """
+    if url.lower().startswith("usb://"):
+        return "check the USB cable and the EPOS4's power"
+    rate = baudrate or DEFAULT_BAUDRATE
+    return f"check the port, the baud rate ({rate} Bd, the EPOS4's setting) and its power"
+
+
+__all__ = ["Transport", "open_transport", "REGISTRY", "silence_hint"]

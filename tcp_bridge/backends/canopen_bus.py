@@ -30,8 +30,9 @@ which serve the simulated drives' bus) is reached through python-can's
 
 python-can's client retries a refused connection for 10 s, logging every try,
 and waits without bound for the server's greeting; so the backend first
-connects once itself (:func:`check_socketcand`): nothing listening, or a server
-that does not greet with ``< hi >``, is one ConfigError line at once.
+connects once itself (:func:`check_socketcand`): nothing listening is one line
+at once, and the bus is opened again later like an unplugged adapter; a server
+that does not greet with ``< hi >`` is a ConfigError.
 
 The command layer uses ``node.sdo.upload/download``, so without ``pdo`` the
 EDS matters for tools, not for the bridge; "none" gives an empty dictionary.
@@ -51,6 +52,7 @@ from typing import Any, Callable, Dict, Optional, Sequence
 import canopen
 
 from ..motion.supervision import Supervision
+from ..errors import BusUnavailable
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .heartbeat import HeartbeatProducer, heartbeat_settings
 from .pdo_status import PdoSettings, PdoStatus, StatusFeed
@@ -103,7 +105,11 @@ SOCKETCAND_GREETING = b"< hi >"  # socketcand doc/protocol.md, "Mode NO_BUS"
 
 
 def check_socketcand(bus: str, options: Dict[str, Any], timeout: float = 3.0) -> None:
-    """ConfigError unless a socketcand server greets at ``options``' host and port."""
+    """Return when a socketcand server greets at ``options``' host and port.
+
+    Nothing listening there is :class:`BusUnavailable` (the bus is opened again
+    later, as an unplugged adapter); a server that does not greet, or no host or
+    port, is a ConfigError."""
     host, port = options.get("host"), options.get("port")
     if host is None or port is None:
         raise ConfigError(f"bus {bus}: interface socketcand needs host and port")
@@ -118,12 +124,24 @@ def check_socketcand(bus: str, options: Dict[str, Any], timeout: float = 3.0) ->
                 greeting += chunk
     except socket.timeout:
         greeting = b""
-    except (OSError, ValueError) as exc:
-        why = _reason(exc, "") if isinstance(exc, OSError) else str(exc)
-        raise ConfigError(f"bus {bus}: no socketcand server at {where}: {why}") from None
+    except ValueError as exc:  # a port that is not a number
+        raise ConfigError(f"bus {bus}: no socketcand server at {where}: {exc}") from None
+    except OSError as exc:  # nothing listens (yet): serve opens it again later
+        raise BusUnavailable(f"bus {bus}: no socketcand server at {where}: "
+                             f"{_reason(exc, '')}") from None
     if greeting != SOCKETCAND_GREETING:
         raise ConfigError(f"bus {bus}: {where} is not a socketcand server (it did not "
                           f"greet with {SOCKETCAND_GREETING.decode()})")
+
+
+def _not_there(exc: BaseException) -> bool:
+    """The adapter is missing or down now (OSError, python-can's CanInitializationError),
+    as opposed to an option or interface name the configuration got wrong."""
+    import can
+
+    if isinstance(exc, can.CanInterfaceNotImplementedError):
+        return False
+    return isinstance(exc, (OSError, can.CanInitializationError))
 
 
 def object_dictionary(eds: Any, node_id: int) -> Any:
@@ -162,9 +180,12 @@ class CanopenBackend:
         try:
             self.network.connect(**options)
         except Exception as exc:  # python-can raises CanError, OSError, ValueError, ImportError...
-            raise ConfigError(f"bus {bus.name}: cannot open CAN interface "
-                              f"{options.get('interface', '(python-can default)')} "
-                              f"{options.get('channel', '')}: {_reason(exc, options.get('channel', 'can0'))}") from None
+            why = (f"bus {bus.name}: cannot open CAN interface "
+                   f"{options.get('interface', '(python-can default)')} "
+                   f"{options.get('channel', '')}: {_reason(exc, options.get('channel', 'can0'))}")
+            if _not_there(exc):  # serve opens it again later (tcp_bridge.backends.reopen)
+                raise BusUnavailable(why) from None
+            raise ConfigError(why) from None
         self.nodes: Dict[int, FedNode] = {}
         self.heartbeat: Optional[HeartbeatProducer] = (
             HeartbeatProducer(bus.name, self.network, heartbeat) if heartbeat else None)

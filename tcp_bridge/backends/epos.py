@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Dict, Optional, Sequence
 
+from ..errors import BusUnavailable
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from .canopen_bus import object_dictionary
 from .heartbeat import refuse_heartbeat
@@ -26,6 +27,8 @@ from .heartbeat import refuse_heartbeat
 # ~2 ms of wire time); 0.2 s leaves room for a loaded host and still lets a
 # probe every 0.25 s notice a device that came back within about a second.
 PROBE_TIMEOUT = 0.2
+# Bus options given to EposClient.open (eds and gateway_node_id are taken first).
+OPTIONS = frozenset({"url", "baudrate", "timeout", "retries", "late_answer_timeout", "trace"})
 
 
 class EposBackend:
@@ -39,6 +42,10 @@ class EposBackend:
         self.eds = options.pop("eds", "none")
         gateway = options.pop("gateway_node_id", axes[0].node_id if axes else None)
         if client is None:
+            unknown = sorted(set(options) - OPTIONS)
+            if unknown:  # else a transport would refuse them, like a port that is not there
+                raise ConfigError(f"bus {bus.name}: unknown epos options {unknown}; known: "
+                                  f"{', '.join(sorted(OPTIONS | {'eds', 'gateway_node_id'}))}")
             url = options.pop("url", None)
             if not isinstance(url, str):
                 raise ConfigError(f"bus {bus.name}: the epos backend needs url = \"...\"")
@@ -47,8 +54,12 @@ class EposBackend:
             except Exception as exc:  # TransportError, OSError, bad options
                 # A transport error already says "cannot open URL: why": name the URL once.
                 why = str(exc) if url in str(exc) else f"cannot open {url}: {exc}"
+                if isinstance(exc, OSError):  # TransportError too: not there now
+                    raise BusUnavailable(f"bus {bus.name}: {why}") from None
                 raise ConfigError(f"bus {bus.name}: {why}") from None
         self.client = client
+        self.url: str = getattr(client.transport, "url", "") or f"bus {bus.name}'s link"
+        self.baudrate: Optional[int] = options.get("baudrate")
         self.nodes: Dict[int, Any] = {}
 
     def node(self, node_id: int) -> Any:
@@ -77,6 +88,13 @@ class EposBackend:
         """
         self.client.read_object(0, 0x1000, 0, timeout=min(self.client.timeout, PROBE_TIMEOUT),
                                 retries=0)
+
+    def describe_silence(self, why: str) -> str:
+        """One line for a failed :meth:`probe`: the device, its URL, what to check."""
+        from epos_link.transports import silence_hint
+
+        return (f"the EPOS4 at {self.url} does not answer ({why}): "
+                f"{silence_hint(self.url, self.baudrate)}")
 
     def close(self) -> None:
         self.client.close()

@@ -33,9 +33,16 @@ log = logging.getLogger(__name__)
 DEVICE_TYPE = 0x1000  # CiA 301 7.5.2.1, mandatory in every CANopen device
 
 
-def log_change(change: Change) -> None:
-    """The ``on_change`` of a bridge's :class:`BusHealth`: each change of state, one line."""
-    if change.silent:
+def log_change(change: Change, describe: Optional[Callable[[str], str]] = None) -> None:
+    """The ``on_change`` of a bridge's :class:`BusHealth`: each change of state, one line.
+
+    ``describe`` (a backend's ``describe_silence``) words a silent bus's device:
+    its URL and what to check, as ``tcp-bridge check`` says it."""
+    if change.silent and change.device and describe is not None:
+        log.warning("bus %s: %s; its commands answer NAK at once until a probe gets an "
+                    "answer", change.link.split(":", 1)[0].removeprefix("bus "),
+                    describe(change.why))
+    elif change.silent:
         log.warning("%s silent (%s): its commands answer NAK at once until a probe gets an "
                     "answer", change.link, change.why)
     else:

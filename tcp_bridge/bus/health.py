@@ -86,6 +86,7 @@ class Change:
     silent: bool
     why: str = ""
     duration: float = 0.0
+    device: bool = False  # the bus's device (not a node): the whole bus
 
 
 @dataclass
@@ -220,7 +221,7 @@ class BusHealth:
         now = self.clock()
         link.why, link.failed_probes, link.next_probe = why, -1, now
         link.silent_since = now  # last: a reader that sees it sees the rest
-        self.on_change(Change(link.name, True, why))
+        self.on_change(Change(link.name, True, why, device=link is self._device))
 
     def _failed(self, link: _Link, why: str, interval: float) -> None:
         link.failed_probes += 1
@@ -233,4 +234,5 @@ class BusHealth:
         if since is None:
             return
         link.silent_since = None
-        self.on_change(Change(link.name, False, duration=max(self.clock() - since, 0.0)))
+        self.on_change(Change(link.name, False, duration=max(self.clock() - since, 0.0),
+                              device=link is self._device))
