@@ -41,6 +41,14 @@ def ensure_env() -> None:
 
 
 def run_tests(args: list[str]) -> int:
+    """The whole suite (no arguments: mypy over both packages first, as CI runs it),
+    or pytest with the arguments given (``-k framing -x``: pytest only)."""
+    if not args:
+        print("dev.py: mypy (the [tool.mypy] section of pyproject.toml)", flush=True)
+        rc = subprocess.call([str(PY), "-m", "mypy"], cwd=ROOT)
+        if rc != 0:
+            print("dev.py: mypy found errors; failing", file=sys.stderr)
+            return rc
     rc = subprocess.call([str(PY), "-m", "pytest", *args], cwd=ROOT)
     if rc == 5:  # pytest: no tests collected, which must never count as a pass
         print("dev.py: pytest collected no tests; failing", file=sys.stderr)

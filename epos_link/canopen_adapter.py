@@ -235,6 +235,7 @@ class EposNode402(_GatewayNodeMixin, BaseNode402):
         adapter stopped is not probed: canopen's assertion stands.
         """
         if upload and self.nmt.state == "INITIALISING":
+            assert self.id is not None  # set by __init__
             probe(self._epos_client, self.id)
         super().setup_pdos(upload)
 

@@ -45,7 +45,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from .tables.axes import AxisConfig, AxisTable, BusConfig, ConfigError, DeviceCode, simulated_table
 from .errors import BridgeError, DeviceFailure
@@ -85,7 +85,7 @@ def read_node(port: SdoPort, device: DeviceCode) -> Reading:
         reading.name = port.upload(0x1008, 0).rstrip(b"\0").decode("latin-1")
     except DeviceFailure as exc:
         reading.failures["1008h"] = _why(exc)
-    objects = IDENTITY + DRIVE
+    objects: Tuple[Tuple[str, str, int, int], ...] = IDENTITY + DRIVE
     if device is DeviceCode.C_DC_MAXON_EPOS4:
         objects += EPOS4_UNITS
     for key, attribute, index, subindex in objects:
@@ -121,7 +121,8 @@ def _why(exc: DeviceFailure) -> str:
 def check(axis_table: AxisTable, *, opener: Optional[Opener] = None) -> List[AxisReport]:
     """One report per axis of ``axis_table``, in AxAddr order. Reads only (module docstring)."""
     if opener is None:
-        from .backends import open_backend as opener
+        from .backends import open_backend
+        opener = open_backend
     params = ParameterStore(axis_table)  # the state file's inversion/offset, read only
     reports: Dict[int, AxisReport] = {}
     try:

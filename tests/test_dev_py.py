@@ -94,3 +94,24 @@ def test_start_with_config_tries_the_configured_buses() -> None:
     assert proc.returncode == 2, out + err
     assert err.startswith("tcp-bridge: bus can")
     assert "listening" not in out
+
+
+def test_the_whole_suite_runs_mypy_first_and_a_type_error_fails_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 24: `dev.py test` (what .ci/run calls) runs mypy over both packages before
+    pytest, and a mypy failure fails it; with pytest arguments only pytest runs."""
+    calls: list = []
+    codes = {"mypy": 1, "pytest": 0}
+    monkeypatch.setattr(dev.subprocess, "call",
+                        lambda cmd, cwd=None: calls.append(cmd[2]) or codes[cmd[2]])
+    assert dev.run_tests([]) == 1 and calls == ["mypy"]
+    calls.clear()
+    codes["mypy"] = 0
+    assert dev.run_tests([]) == 0 and calls == ["mypy", "pytest"]
+    calls.clear()
+    assert dev.run_tests(["-k", "framing"]) == 0 and calls == ["pytest"]
+
+
+def test_the_packages_are_marked_typed() -> None:
+    assert (ROOT / "epos_link" / "py.typed").exists() and (ROOT / "tcp_bridge" / "py.typed").exists()
+    assert '"py.typed"' in (ROOT / "pyproject.toml").read_text()

@@ -49,6 +49,7 @@ log = logging.getLogger("tcp_bridge.motion")
 T = TypeVar("T")
 POSITION_DEMAND: Final = 0x6062  # CiA 402-2 6.7: the trajectory generator's output
 POSITION_ACTUAL: Final = 0x6064
+SOFTWARE_POSITION_LIMIT: Final = 0x607D  # sub 1 min, sub 2 max (CiA 402-2 6.5.2)
 
 
 class OutcomeUnknown(DeviceFailure):
@@ -142,6 +143,7 @@ class MoveStarts:
             self.set_mode(Mode.PROFILE_POSITION, deadline)
             if what.relative:
                 what = PositionMove(self._standing_position() + what.target, relative=False)
+            self._within_limits(what.target)
             halt = self.port.read(CONTROLWORD, 0) & Cw.HALT
             self.port.write(TARGET_POSITION, 0, what.target)
             # Bit 4 low (keeping halt as it is), so that the start write is an edge.
@@ -155,6 +157,29 @@ class MoveStarts:
             self.set_mode(Mode.HOMING, deadline)
             self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # bit 4 low
         return what
+
+    def _within_limits(self: "Cia402", target: int) -> None:  # type: ignore[misc]
+        """Refuse (NAK, nothing started) a target beyond the drive's 607Dh.
+
+        What an EPOS4 does with such a target is in no public maxon source:
+        CiA 402-2 6.5.2 lets a drive clamp it, and the EPOS4 error table has
+        8A82h "software position limit". Clamped, the axis would stop short and
+        R82 would say "reached" at the limit; faulted, the move would end in a
+        fault. Neither is what the client asked, so the bridge never sends it:
+        the limits are read from the drive (whoever wrote them), and min >= max
+        (limits switched off) or a drive without 607Dh lets every target pass.
+        The simulator's choice (clamp) is in epos_link/simulator/setpoints.py.
+        """
+        try:
+            low = self.port.read(SOFTWARE_POSITION_LIMIT, 1)
+            high = self.port.read(SOFTWARE_POSITION_LIMIT, 2)
+        except NodeSilent:
+            raise
+        except DeviceFailure:  # an abort: no software limits on this drive
+            return
+        if low < high and not low <= target <= high:
+            raise DeviceFailure(f"{self.port.name}: target {target} is beyond the software "
+                                f"position limits 607Dh ({low}..{high}); the move was not started")
 
     def _standing_position(self: "Cia402") -> int:  # type: ignore[misc]
         """Where a relative move counts from: 6062h, else 6064h (see the module doc)."""
