@@ -33,6 +33,7 @@ and exits 130.
 from __future__ import annotations
 
 import argparse
+import importlib
 import re
 import sys
 import time
@@ -277,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
             return 2
         if path.lower().endswith((".png", ".svg")):
             try:
-                import matplotlib  # noqa: F401  # checked before anything is sent
+                importlib.import_module("matplotlib")  # checked before anything is sent
             except ImportError:
                 print("epos-link record: PNG and SVG plots need matplotlib: pip install "
                       "'epos-link[plot]' (or pip install matplotlib); an .html plot needs nothing",

@@ -48,6 +48,7 @@ Value = Union[int, float, bool, str, bytes]
 MAX_PRE_SAMPLES = 100_000   # the ring buffer's bound, whatever --pre asks
 MAX_SAMPLES = 1_000_000     # samples after the trigger: 24 MB of CSV for 3 objects
 STATUSWORD = (0x6041, 0)
+EPSILON = 1e-9  # seconds: times on a grid (k * period) compare equal through rounding
 SET_POINT_ACKNOWLEDGE = 1 << 12  # pp mode (CiA 402-2 6.6.1.2, statusword bit 12)
 
 # Units of objects whose unit the EPOS4 fixes (EPOS4 Firmware Specification, as quoted in
@@ -235,18 +236,18 @@ class Recorder:
                 self.trigger_time = sample.time
                 self.phase = Phase.RECORDING
                 # Only what lies within `pre` of the trigger is kept.
-                while self.before and self.before[0].time < sample.time - self.pre:
+                while self.before and self.before[0].time < sample.time - self.pre - EPSILON:
                     self.before.popleft()
             else:
                 self._previous = sample.values
                 self.before.append(sample)
-                while self.before and self.before[0].time < sample.time - self.pre:
+                while self.before and self.before[0].time < sample.time - self.pre - EPSILON:
                     self.before.popleft()
                 return self.phase
         if self.phase is Phase.RECORDING:
             self.after.append(sample)
             assert self.trigger_time is not None
-            if sample.time - self.trigger_time >= self.duration:
+            if sample.time - self.trigger_time >= self.duration - EPSILON:
                 self.phase = Phase.DONE
             elif len(self.after) >= self.max_samples:
                 self.truncated = True
