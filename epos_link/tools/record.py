@@ -206,7 +206,7 @@ class Progress:
                 return
             self._last, self._shown = now, phase
             if phase is Phase.WAITING:
-                text = f"waiting for the trigger ({self.what}): {now - self._start:.1f} s"
+                text = f"waiting for the trigger: {self.what}, {now - self._start:.1f} s"
             else:
                 done = now - (recorder.trigger_time or now)
                 text = f"recording: {min(done, self.duration):.1f} of {self.duration:g} s, {len(recorder.after)} samples"
@@ -214,7 +214,7 @@ class Progress:
         elif phase is not self._shown and phase is not Phase.DONE:
             self._shown = phase
             if phase is Phase.WAITING:
-                self.out.write(f"waiting for the trigger ({self.what})...\n")
+                self.out.write(f"waiting for the trigger: {self.what}...\n")
             else:
                 self.out.write(f"triggered; recording {self.duration:g} s\n")
         self.out.flush()

@@ -191,7 +191,7 @@ class MoveStart:
         return acknowledged or left_target
 
     def describe(self, channels: Sequence[Channel]) -> str:
-        return "a move starts (statusword)"
+        return "a move starting, on the statusword"
 
 
 Trigger = Union[Immediate, Crossing, MoveStart]
