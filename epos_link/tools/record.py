@@ -141,7 +141,8 @@ def channels_of(client: EposClient, targets: Sequence[Target]) -> list[Channel]:
     if any(t.index in VELOCITY_OBJECTS for t in targets):
         node = targets[0].node
         try:
-            velocity = velocity_unit(TYPES["u32"].decode(client.read_object(node, SI_UNIT_VELOCITY, 0)))  # type: ignore[arg-type]
+            si_unit = TYPES["u32"].decode(client.read_object(node, SI_UNIT_VELOCITY, 0))
+            velocity = velocity_unit(si_unit) if isinstance(si_unit, int) else ""
         except DeviceError:
             velocity = ""  # no 60A9h: the column says no unit rather than a guess
     return [Channel(t.index, t.subindex, column_name(t.name, t.index, t.subindex),
