@@ -34,9 +34,9 @@ def ensure_env() -> None:
     if not PY.exists():
         print("dev.py: creating .venv", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    print("dev.py: installing the project and its test extra into .venv", flush=True)
+    print("dev.py: installing the project and its test and plot extras into .venv", flush=True)
     pip = [str(PY), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
-    subprocess.run(pip + ["-e", f"{ROOT}[test]"], check=True)
+    subprocess.run(pip + ["-e", f"{ROOT}[test,plot]"], check=True)  # plot: the record tests
     STAMP.write_text(want)
 
 
