@@ -2,7 +2,7 @@
 """One entry point that sets itself up: ``python3 dev.py start`` or ``python3 dev.py test``.
 
 It creates ``.venv`` beside this file on first use (and again whenever
-pyproject.toml changes), installs the project with its test extra, then runs
+pyproject.toml changes), installs the project with its test and plot extras, then runs
 the chosen job inside that environment. Only python3 is needed.
 
 ``start`` runs ``tcp-bridge serve`` with the arguments given: on the embedded
