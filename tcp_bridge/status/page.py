@@ -87,7 +87,7 @@ function show(sample) {
     set("mode", text(a.mode_name));
     set("pos", text(a.position, 3), "num");
     set("vel", text(a.velocity, 3), "num");
-    set("reached", a.target_reached === null ? "" : (a.target_reached ? "yes" : "moving"));
+    set("reached", a.target_reached === null ? "" : (a.target_reached ? "yes" : "no"));
     set("errors", a.errors === null ? "" : (a.errors.length ? a.errors.join(", ") : "none"),
         a.errors && a.errors.length ? "bad" : "");
     set("ack", text(a.moving_ack), "num");
@@ -110,7 +110,7 @@ function plot(id, key, label) {
   const c = document.getElementById(id), g = c.getContext("2d");
   g.clearRect(0, 0, c.width, c.height);
   if (!hist.length || plotted === null) return;
-  const now = hist[hist.length - 1].t, left = 60, w = c.width - left - 10, h = c.height - 30;
+  const now = hist[hist.length - 1].t, left = 60, w = c.width - left - 10, h = c.height - 40;
   let lo = Infinity, hi = -Infinity;
   for (const s of hist) for (const a of plotted) {
     const y = s[key][a]; if (y !== null && y !== undefined) { lo = Math.min(lo, y); hi = Math.max(hi, y); }
@@ -133,7 +133,7 @@ function plot(id, key, label) {
       pen = true;
     }
     g.stroke();
-    g.fillStyle = g.strokeStyle; g.fillText("axis " + addr, left + 8 + 60 * i, 20 + h + 14);
+    g.fillStyle = g.strokeStyle; g.fillText("axis " + addr, left + 8 + 60 * i, c.height - 4);
   });
 }
 function draw() { plot("pos", "p", "position"); plot("vel", "v", "velocity"); }
