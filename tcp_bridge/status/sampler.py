@@ -31,11 +31,11 @@ R15, R11           1 + 5 (6061h; 603Fh, 60FDh, and 6064h,       every
 So at most :data:`FAST_TRANSFERS` (5) transfers per axis per sample, plus
 :data:`SLOW_TRANSFERS` (6) every 4th: at the default period at most
 ``(4 * 5 + 6) / (4 * 0.5 s)`` = **13 SDO transfers per second per axis**
-(:func:`max_transfers_per_second`), usually 11.5 (R11 reads 2 objects when no
-software limit is hit). Add one read of 60A9h (an EPOS4's velocity unit) after a
-power cycle, which any client's R14 would cost too. With PDO-fed status
-(``pdo = true``) R10, R12, R14 and R82 cost nothing while the PDOs are fresh: 1.75
-per second. A bus whose device is silent costs nothing (answered NAK at once). An
+(:func:`max_transfers_per_second`), usually 9.5 to 11.5 (R82 reads one object or
+two, R11 two when no software limit is hit). Add one read of 60A9h (an EPOS4's
+velocity unit) after a power cycle, which any client's R14 would cost too. With
+PDO-fed status (``pdo = true``) R10, R12, R14 and R82 cost nothing while the PDOs
+are fresh: R15 and R11 remain, usually 1.5 transfers per second, at most 3. A bus whose device is silent costs nothing (answered NAK at once). An
 axis without a drive (an internal axis with node 0) reads only R86.
 
 **Chosen** (no source speaks of a status page): the period, the slow set and the
