@@ -245,6 +245,12 @@ class Counter:
             setattr(sdo, name, fn)
 
 
+def nodes(engine: Any) -> List[Any]:
+    ports = [engine.axes[a].port for a in (1, 2, 3)]
+    assert all(p is not None for p in ports)
+    return [p.node for p in ports]
+
+
 def test_a_sample_costs_no_more_transfers_than_documented_and_only_reads() -> None:
     engine = build_engine(simulated_table(3))
     loop = asyncio.new_event_loop()
@@ -258,7 +264,7 @@ def test_a_sample_costs_no_more_transfers_than_documented_and_only_reads() -> No
             return await execute(request)
         engine.execute = spy  # type: ignore[method-assign]
         loop.run_until_complete(engine.probe())  # the start-up probe's reads are not the page's
-        counter = Counter([engine.axes[a].port.node for a in (1, 2, 3)])
+        counter = Counter(nodes(engine))
         per_sample = []
         for _ in range(2 * SLOW_EVERY):
             before = counter.count
@@ -279,7 +285,7 @@ def test_a_sample_costs_no_more_transfers_than_documented_and_only_reads() -> No
 
 def test_the_running_sampler_keeps_to_its_rate(bridge: Bridge) -> None:
     """Samples are ``period`` apart at least, so transfers per second stay bounded."""
-    counter = Counter([bridge.engine.axes[a].port.node for a in (1, 2, 3)])
+    counter = Counter(nodes(bridge.engine))
     try:
         seq0, start = bridge.http.sampler.seq, time.monotonic()
         time.sleep(10 * PERIOD)
