@@ -98,7 +98,8 @@ class Chromium:
             assert time.monotonic() < deadline, "chromium did not open its devtools port"
             time.sleep(0.05)
         port = int(active.read_text().split()[0])
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30) as r:
+        direct = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # no http_proxy
+        with direct.open(f"http://127.0.0.1:{port}/json/list", timeout=30) as r:
             pages = [t for t in json.load(r) if t["type"] == "page"]
         path = "/" + pages[0]["webSocketDebuggerUrl"].split("/", 3)[3]
         self.ws = WebSocket("127.0.0.1", port, path)
