@@ -4,7 +4,7 @@
 
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
-                     [--max-per-host 32]
+                     [--max-per-host 32] [--http HOST:PORT]
     tcp-bridge serve --simulate [--axes N] [--can-server HOST:PORT]
     tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
@@ -118,6 +118,15 @@ def network(text: str) -> Network:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def http_address(text: str) -> "tuple[str, int]":
+    from .status.http import parse_address
+
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _table(args: argparse.Namespace) -> AxisTable:
     if args.simulate:
         options = {}
@@ -176,6 +185,10 @@ async def _serve(args: argparse.Namespace) -> int:
 
     table = _table(args)
     options = _server_options(args, table.settings)
+    if args.http is not None and tuple(options.allow) == LOOPBACK \
+            and not is_loopback_bind(args.http[0]):
+        raise ConfigError(f"--http {args.http[0]} serves other hosts: say which with --allow "
+                          "CIDR (or [bridge] allow)")
     ports = list(options.ports)
     engine = await asyncio.get_running_loop().run_in_executor(None, build_engine, table)
     server = BridgeServer(engine, options)
@@ -217,8 +230,21 @@ async def _serve(args: argparse.Namespace) -> int:
         if served is not None:
             print(f"{PROG}: CAN bus served over socketcand at {served.url} "
                   f"(channel {served.bus_name})", flush=True)
+    status = None
+    if args.http is not None:  # the live status page (tcp_bridge.status)
+        from .status.http import open_status_page
+
+        try:
+            status = await open_status_page(engine, *args.http, allow=options.allow)
+        except OSError as exc:
+            await server.close()
+            return _fail(f"--http: cannot listen on {args.http[0]} port {args.http[1]}: "
+                         f"{exc.strerror or exc}")
+        print(f"{PROG}: status page at {status.url}", flush=True)
     await stop.wait()
     print(f"{PROG}: shutting down (a second signal exits at once)", flush=True)
+    if status is not None:
+        await status.close()
     await server.close()
     return 0
 
@@ -344,6 +370,9 @@ def parser() -> argparse.ArgumentParser:
                    help="serve clients from this network, e.g. 10.1.2.0/24 (repeatable; "
                         "default: [bridge] allow, else loopback only); others are closed "
                         "unanswered and logged")
+    s.add_argument("--http", type=http_address, metavar="HOST:PORT",
+                   help="also serve a read-only live status page and its JSON (/api/axes) "
+                        "on this address (PORT alone: 127.0.0.1; off unless given)")
     s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
     s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
     s.add_argument("-v", "--verbose", action="count", default=0,

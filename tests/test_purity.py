@@ -16,7 +16,8 @@ PURE = [
     "epos_link.tools.decode", "epos_link.tools.pcapng",
     "tcp_bridge.wire", "tcp_bridge.wire.lines", "tcp_bridge.wire.requests",
     "tcp_bridge.wire.replies", "tcp_bridge.tables.commands", "tcp_bridge.tables.units",
-    "tcp_bridge.access", "tcp_bridge.bus.health",
+    "tcp_bridge.access", "tcp_bridge.bus.health", "tcp_bridge.status.rows",
+    "tcp_bridge.status.page",
 ]
 FORBIDDEN = ["serial", "usb", "socket", "asyncio", "threading", "time", "select", "can", "canopen"]
 
