@@ -36,6 +36,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "restore": ("epos_link.tools.backup", "write back the objects of a DCF that differ",
                 "epos-link restore /dev/ttyUSB0 1 drive1.dcf --dry-run"),
     "ports": ("epos_link.tools.ports", "list serial ports and EPOS4 USB devices", "epos-link ports"),
+    "watch": ("epos_link.tools.watch", "a live table of objects (statusword decoded), q quits",
+              "epos-link watch /dev/ttyUSB0 --node 2 Statusword 0x6064"),
     "sim": ("epos_link.tools.sim", "serve a simulated EPOS4 on a pty or TCP",
             "epos-link sim --tcp 127.0.0.1:0 --drives 2,3"),
 }
