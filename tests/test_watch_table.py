@@ -150,11 +150,12 @@ def test_every_line_fits_the_width(width: int) -> None:
 
 
 def test_a_wide_screen() -> None:
-    # 160 columns: OBJECT 11, NAME 26 (the longest name), VALUE 92, UNIT 8, AGE 6, RATE 7,
-    # two blanks between: VALUE starts at 41, UNIT at 135, AGE ends at 151, RATE at 160.
+    # OBJECT 11, NAME 26 (the longest name), VALUE 65 (the longest value), UNIT 9, AGE 6,
+    # RATE 7, two blanks between: VALUE starts at 41, UNIT at 108, AGE ends at 125, RATE
+    # at 134, whatever room is left on the right.
     lines = render(rows_of_a_drive(), 1.0, 160)
-    cells = [(line[:11], line[13:39].rstrip(), line[41:133].rstrip(), line[135:143].rstrip(),
-              line[145:151].lstrip(), line[153:160].lstrip()) for line in lines]
+    cells = [(line[:11], line[13:39].rstrip(), line[41:106].rstrip(), line[108:117].rstrip(),
+              line[119:125].lstrip(), line[127:134].lstrip()) for line in lines]
     assert cells == [
         ("OBJECT     ", "NAME", "VALUE", "UNIT", "AGE", "RATE"),
         ("0x6041/0x00", "Statusword", "0x0637 operation enabled, voltage enabled, remote, target reached",
@@ -163,16 +164,29 @@ def test_a_wide_screen() -> None:
         ("0x6064/0x00", "Position actual value", "1000", "inc", "0.0s", "2.0/s"),
         ("0x606C/0x00", "Velocity actual value", "1000", "rpm", "1.0s", "2.0/s"),
     ]
-    assert all(len(line) == 160 for line in lines)
-    assert all(line[11:13] + line[39:41] + line[133:135] + line[143:145] + line[151:153] == " " * 10
+    assert all(len(line) == 134 for line in lines)
+    assert all(line[11:13] + line[39:41] + line[106:108] + line[117:119] + line[125:127] == " " * 10
                for line in lines)
 
 
+def test_the_value_column_grows_and_never_shrinks() -> None:
+    row = Row(STATUSWORD)
+    row.reading(0x0040, 0.0)
+    narrow = render([row], 0.0, 200)
+    assert narrow[1].startswith("0x6041/0x00  Statusword    0x0040 switch on disabled  ")  # NAME_MIN 12
+    row.reading(0x0637, 1.0)
+    row.reading(0x0040, 2.0)
+    wide = render([row], 2.0, 200)
+    assert len(wide[1]) == len(narrow[1]) + len("0x0637 operation enabled, voltage enabled, remote, target reached") \
+        - len("0x0040 switch on disabled")
+
+
 def test_a_narrow_screen_shortens_names_before_values() -> None:
-    name, value = columns(["Modes of operation display"], 80)
-    assert (name, value) == (12, 26)
+    name, value = columns(["Modes of operation display"], 65, 80)
+    assert (name, value) == (12, 25)
     lines = render(rows_of_a_drive(), 1.0, 80)
-    assert lines[1] == "0x6041/0x00  Statusword    0x0637 operation enabled,~              1.0s    2.0/s"
+    assert lines[1] == "0x6041/0x00  Statusword    0x0637 operation enabled~               1.0s    2.0/s"
     assert lines[2] == "0x6061/0x00  Modes of op~  3 profile velocity (pv)                 1.0s    2.0/s"
     # wide enough: the whole name
-    assert columns(["Modes of operation display"], 120) == (26, 52)
+    assert columns(["Modes of operation display"], 65, 120) == (26, 51)
+    assert columns(["Modes of operation display"], 65, 200) == (26, 65)  # no wider than the values

@@ -57,6 +57,7 @@ from .watch_table import Row, Watched, render, unit_of, velocity_unit
 
 DEFAULT_OBJECTS = ("0x6041", "0x6061", "0x6064", "0x606C", "0x1001", "0x603F")
 DEFAULT_PERIOD = 0.25
+REDRAW = 0.5  # the longest a screen waits between draws, so ages move on a long --period
 OFF_TERMINAL_WIDTH = 120  # the width of tables printed to a pipe or file, unless $COLUMNS says
 SI_UNIT_VELOCITY = 0x60A9
 QUIT_KEYS = frozenset("qQ")
@@ -151,6 +152,7 @@ class Watch:
         self.rows = [Row(Watched(t.index, t.subindex, t.name or "", unit_of(t.index, t.subindex, velocity)))
                      for t in targets]
         self.failures: list[Optional[EposError]] = [None] * len(targets)
+        self.first = clock()  # when the first round began
 
     def read(self, index: int) -> None:
         """Read row ``index`` once and record the outcome."""
@@ -217,12 +219,19 @@ class Screen:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.out.write(LEAVE)
-        self.out.flush()
-        if self._saved is not None:
-            import termios
+        try:
+            self.out.write(LEAVE)
+            self.out.flush()
+        except OSError:  # a terminal that hung up (SIGHUP) takes no more output
+            pass
+        finally:
+            if self._saved is not None and self.keys is not None:
+                import termios
 
-            termios.tcsetattr(self.keys, termios.TCSADRAIN, self._saved)
+                try:
+                    termios.tcsetattr(self.keys, termios.TCSADRAIN, self._saved)
+                except termios.error:  # nor its modes
+                    pass
 
     def draw(self, lines: list[str], height: int) -> None:
         # Home, each line over the old one with the rest of it erased, then erase
@@ -263,36 +272,50 @@ def _width() -> int:
     return shutil.get_terminal_size((OFF_TERMINAL_WIDTH, 24)).columns
 
 
-def _deadlines(period: float, clock: Callable[[], float]) -> Iterator[float]:
-    """The start of each round: every ``period`` s, never catching up on rounds missed
-    while reads were slow (a late round starts the next period from itself)."""
-    start = clock()
+def _rounds(first: float, period: float, clock: Callable[[], float]) -> Iterator[float]:
+    """The start of each round after the one that began at ``first``: every ``period``
+    s, never catching up on rounds missed while reads were slow (a late round starts
+    the next period from itself)."""
+    start = first
     while True:
-        yield start
         start = max(start + period, clock())
+        yield start
 
 
 def _live(watch: Watch, args: argparse.Namespace, out: TextIO) -> int:
     keys = sys.stdin.fileno() if sys.stdin is not None and sys.stdin.isatty() else None
+    title = _title(args, keys is not None)
     with Screen(out, keys) as screen:
-        for start in _deadlines(args.period, watch.clock):
-            if start > watch.clock() and screen.quit_pressed(start - watch.clock()):
-                return 0
+
+        def draw() -> None:
+            size = shutil.get_terminal_size()  # each time: the terminal may have been resized
+            screen.draw(watch.lines(size.columns, title), size.lines)
+
+        draw()
+        for start in _rounds(watch.first, args.period, watch.clock):
+            # Between rounds: keys, and the ages kept moving on a long --period.
+            while (left := start - watch.clock()) > 0:
+                if screen.quit_pressed(min(left, REDRAW)):
+                    return 0
+                draw()
             if watch.round(screen.quit_pressed):
                 return 0
-            size = shutil.get_terminal_size()
-            screen.draw(watch.lines(size.columns, _title(args, keys is not None)), size.lines)
+            draw()
     return 0
 
 
 def _batch(watch: Watch, args: argparse.Namespace, out: TextIO) -> int:
-    for start in _deadlines(args.period, watch.clock):
+    def table() -> None:
+        out.write("\n".join(watch.lines(_width(), _title(args, False))) + "\n\n")
+        out.flush()
+
+    table()
+    for start in _rounds(watch.first, args.period, watch.clock):
         delay = start - watch.clock()
         if delay > 0:
             time.sleep(delay)
         watch.round()
-        out.write("\n".join(watch.lines(_width(), _title(args, False))) + "\n\n")
-        out.flush()
+        table()
     return 0
 
 

@@ -34,8 +34,10 @@ One line per object, in five columns::
 
 Widths (**chosen**): fixed OBJECT, UNIT, AGE and RATE columns; NAME as wide as the
 longest name but shrunk (cut, ending in ``~``) before VALUE drops below
-:data:`VALUE_MIN`; VALUE takes the rest. Every line is cut to the terminal width,
-so a narrow terminal never wraps and the screen can be redrawn in place.
+:data:`VALUE_MIN`; VALUE as wide as the widest value shown so far (it grows,
+never shrinks, so columns do not jump about), within what the terminal leaves.
+Every line is cut to the terminal width, so a narrow terminal never wraps and the
+screen can be redrawn in place.
 """
 from __future__ import annotations
 
@@ -54,7 +56,7 @@ VALUE_MIN = 30     # VALUE keeps this many columns while NAME can give some up
 NAME_MIN = 12
 GAP = "  "
 ADDRESS_WIDTH = len("0x6041/0x00")
-UNIT_WIDTH = len("0.01 rpm")
+UNIT_WIDTH = len("0.001 rpm")
 AGE_WIDTH = 6
 RATE_WIDTH = 7
 
@@ -111,6 +113,7 @@ class Row:
         self.error: Optional[str] = None
         self.changed_at: Optional[float] = None
         self.reads = 0
+        self.widest = 0  # the longest VALUE this row has shown
         self._times: deque[float] = deque()
 
     def reading(self, value: Value, now: float) -> None:
@@ -122,11 +125,13 @@ class Row:
         self.reads += 1
         self._times.append(now)
         self._forget(now)
+        self.widest = max(self.widest, len(self.shown_value()))
 
     def failure(self, text: str, now: float) -> None:
         """A read that failed at ``now``: the row shows ``text`` until a read succeeds."""
         self.error = text
         self._forget(now)
+        self.widest = max(self.widest, len(self.shown_value()))
 
     def _forget(self, now: float) -> None:
         while self._times and self._times[0] < now - self.window:
@@ -223,18 +228,20 @@ def fit(text: str, width: int) -> str:
     return text[:width - 1] + "~"
 
 
-def columns(names: Sequence[str], width: int) -> tuple[int, int]:
-    """The widths of NAME and VALUE on a terminal ``width`` columns wide."""
+def columns(names: Sequence[str], widest: int, width: int) -> tuple[int, int]:
+    """The widths of NAME and VALUE for values up to ``widest`` characters on a
+    terminal ``width`` columns wide."""
     fixed = ADDRESS_WIDTH + UNIT_WIDTH + AGE_WIDTH + RATE_WIDTH + 5 * len(GAP)
     longest = max([len("NAME"), *map(len, names)])
-    name = max(NAME_MIN, min(longest, width - fixed - VALUE_MIN))
-    return name, max(1, width - fixed - name)
+    value = max(len("VALUE"), widest)
+    name = max(NAME_MIN, min(longest, width - fixed - min(value, VALUE_MIN)))
+    return name, max(1, min(value, width - fixed - name))
 
 
 def render(rows: Sequence[Row], now: float, width: int, title: str = "") -> list[str]:
     """The screen: the title (if any), a header and one line per row, each line at
     most ``width`` characters, trailing blanks removed."""
-    name_w, value_w = columns([r.watched.name for r in rows], width)
+    name_w, value_w = columns([r.watched.name for r in rows], max([0, *(r.widest for r in rows)]), width)
 
     def line(address: str, name: str, value: str, unit: str, age: str, rate: str) -> str:
         text = GAP.join([fit(address, ADDRESS_WIDTH), fit(name, name_w), fit(value, value_w),
