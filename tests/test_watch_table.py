@@ -88,6 +88,9 @@ def test_age_is_the_time_since_the_value_changed() -> None:
     assert row.age(14.0) == pytest.approx(1.0)
     row.reading(0x21, 15.0)
     assert row.shown_value() == "0x0021 ready to switch on" and row.age(15.0) == pytest.approx(2.0)
+    assert row.age(None) == pytest.approx(2.0)  # as of the last read (--once)
+    row.reading(0x21, 16.0)
+    assert row.age(None) == pytest.approx(3.0) and row.age(20.0) == pytest.approx(7.0)
 
 
 def test_rate_is_the_reads_per_second_over_the_window() -> None:

@@ -181,8 +181,9 @@ class Watch:
                 return True
         return False
 
-    def lines(self, width: int, title: str = "") -> list[str]:
-        return render(self.rows, self.clock(), width, title)
+    def lines(self, width: int, title: str = "", *, live: bool = True) -> list[str]:
+        """The table now; ``live=False``: ages as of each row's read (``--once``)."""
+        return render(self.rows, self.clock() if live else None, width, title)
 
     def exit_code(self) -> int:
         """Of ``--once``: 0 all read, 1 a device error code, 2 a timeout or link failure."""
@@ -333,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
             if isinstance(first, EposTimeoutError) and all(isinstance(f, EposTimeoutError) for f in watch.failures):
                 _silent(client, args, first)  # no answer at all: a silent EPOS4?
             if args.once:
-                out.write("\n".join(watch.lines(_width(), _title(args, False))) + "\n")
+                out.write("\n".join(watch.lines(_width(), _title(args, False), live=False)) + "\n")
                 return watch.exit_code()
             previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGHUP)}
             try:

@@ -112,6 +112,7 @@ class Row:
         self.value: Optional[Value] = None
         self.error: Optional[str] = None
         self.changed_at: Optional[float] = None
+        self.read_at: Optional[float] = None  # the last successful read
         self.reads = 0
         self.widest = 0  # the longest VALUE this row has shown
         self._times: deque[float] = deque()
@@ -122,6 +123,7 @@ class Row:
             self.changed_at = now
         self.value = value
         self.error = None
+        self.read_at = now
         self.reads += 1
         self._times.append(now)
         self._forget(now)
@@ -137,11 +139,16 @@ class Row:
         while self._times and self._times[0] < now - self.window:
             self._times.popleft()
 
-    def age(self, now: float) -> Optional[float]:
-        return None if self.changed_at is None else max(0.0, now - self.changed_at)
+    def age(self, now: Optional[float]) -> Optional[float]:
+        """Seconds since the value changed, at ``now``; ``now=None``: as of the last read."""
+        at = self.read_at if now is None else now
+        if self.changed_at is None or at is None:
+            return None
+        return max(0.0, at - self.changed_at)
 
-    def rate(self, now: float) -> Optional[float]:
-        self._forget(now)
+    def rate(self, now: Optional[float]) -> Optional[float]:
+        if now is not None:
+            self._forget(now)
         if len(self._times) < 2 or self._times[-1] <= self._times[0]:
             return None
         return (len(self._times) - 1) / (self._times[-1] - self._times[0])
@@ -238,9 +245,10 @@ def columns(names: Sequence[str], widest: int, width: int) -> tuple[int, int]:
     return name, max(1, min(value, width - fixed - name))
 
 
-def render(rows: Sequence[Row], now: float, width: int, title: str = "") -> list[str]:
+def render(rows: Sequence[Row], now: Optional[float], width: int, title: str = "") -> list[str]:
     """The screen: the title (if any), a header and one line per row, each line at
-    most ``width`` characters, trailing blanks removed."""
+    most ``width`` characters, trailing blanks removed. ``now=None`` gives each row's
+    age as of its own last read (``--once``: 0.0s, whatever the reads took)."""
     name_w, value_w = columns([r.watched.name for r in rows], max([0, *(r.widest for r in rows)]), width)
 
     def line(address: str, name: str, value: str, unit: str, age: str, rate: str) -> str:
