@@ -119,3 +119,15 @@ def test_a_silent_link_is_one_line_and_exit_2() -> None:
     lines = out.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"epos-link watch: the EPOS4 at socket://127.0.0.1:{port} "
                                                    "does not answer"), out.stderr
+
+
+def test_the_docs_show_the_captured_screen() -> None:
+    """README.md and docs/epos-link.md show docs/watch-screen.txt, the screen that
+    tests/test_watch_tmux.py captured (EPOS_LINK_SCREEN_DUMP), as it is."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    screen = (root / "docs" / "watch-screen.txt").read_text(encoding="utf-8")
+    assert "operation enabled" in screen and "OBJECT       NAME" in screen
+    for page in ("README.md", "docs/epos-link.md"):
+        assert "```text\n" + screen + "```" in (root / page).read_text(encoding="utf-8"), page

@@ -27,7 +27,8 @@ One line per object, in five columns::
 * AGE (**chosen**): the time since the value last *changed*, that is since the
   first read that returned the value shown. A value that holds still ages (how
   long has the drive been in this state?); a moving one stays near 0. How fresh
-  the reading is, RATE says. ``-`` before the first successful read.
+  the reading is, RATE says. ``-`` before the first successful read. One table
+  on its own (``--once``) gives ages as of each row's read: 0.0s.
 * RATE: successful reads per second of this row over the last
   :data:`RATE_WINDOW` seconds, ``(n - 1) / (t_last - t_first)`` of the n reads in
   the window; ``-`` until two reads.
