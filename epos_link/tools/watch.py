@@ -70,11 +70,12 @@ HOME, ERASE_LINE, ERASE_BELOW = "\x1b[H", "\x1b[K", "\x1b[J"
 
 
 def _intermixed(parser: argparse.ArgumentParser) -> None:
-    """Let OBJECT words follow options (``URL --node 2 Statusword``): argparse before
-    Python 3.12.7 matches ``nargs="*"`` positionals once, empty, right after URL, and
-    rejects later words. The subparser (made by :mod:`epos_link.cli`) parses
-    intermixed instead; the guard lets ``parse_known_intermixed_args`` call the plain
-    parse it is built on."""
+    """Let OBJECT words follow options (``URL --node 2 Statusword``): argparse matches
+    a ``nargs="*"`` positional as soon as it can (Python 3.11 here: empty, right after
+    URL) and then rejects later words as unrecognized. The subparser (made by
+    :mod:`epos_link.cli`) parses intermixed instead (``parse_intermixed_args``, as the
+    argparse documentation suggests for this); the guard lets
+    ``parse_known_intermixed_args`` call the plain parse it is built on."""
     plain = parser.parse_known_args
     inside = False
 
