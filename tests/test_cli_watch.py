@@ -131,3 +131,9 @@ def test_the_docs_show_the_captured_screen() -> None:
     assert "operation enabled" in screen and "OBJECT       NAME" in screen
     for page in ("README.md", "docs/epos-link.md"):
         assert "```text\n" + screen + "```" in (root / page).read_text(encoding="utf-8"), page
+
+
+def test_the_url_is_required_and_objects_are_not() -> None:
+    out = cli("watch")
+    assert out.returncode == 2
+    assert out.stderr.splitlines()[-1] == "epos-link watch: error: the following arguments are required: URL"

@@ -97,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_url(parser)
     parser.add_argument("--node", type=_node, default=0, metavar="N",
                         help="CANopen node id: 0 = the connected EPOS4 (default), 1..127 = via its gateway")
-    parser.add_argument("objects", metavar="OBJECT", nargs="*",
+    parser.add_argument("objects", metavar="OBJECT", nargs="*", default=[],
                         help='an object by name ("Position actual value") or INDEX[/SUBINDEX] '
                         "(0x6064, 0x1018/4); default: statusword, mode, position, velocity, errors")
     parser.add_argument("--period", type=positive_float, default=DEFAULT_PERIOD, metavar="SECONDS",
