@@ -38,6 +38,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "ports": ("epos_link.tools.ports", "list serial ports and EPOS4 USB devices", "epos-link ports"),
     "record": ("epos_link.tools.record", "sample objects of one node over time into CSV and a plot",
                "epos-link record /dev/ttyUSB0 --node 1 position_actual_value statusword --plot move.png"),
+    "watch": ("epos_link.tools.watch", "a live table of objects (statusword decoded), q quits",
+              "epos-link watch /dev/ttyUSB0 --node 2 Statusword 0x6064"),
     "sim": ("epos_link.tools.sim", "serve a simulated EPOS4 on a pty or TCP",
             "epos-link sim --tcp 127.0.0.1:0 --drives 2,3"),
 }
