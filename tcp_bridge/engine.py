@@ -108,6 +108,10 @@ class Engine:
                                debug=lambda: self.debug,
                                observer=self.guards[axis.bus].observer(axis.node_id))
             self.axes[addr] = AxisRuntime(axis, self.params, port, timing, **cia402_options)
+            if axis.cyclic is not None and port is not None and self.axes[addr].cyclic is None:
+                raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: cyclic: bus "
+                                  f"{axis.bus} cannot stream set-points (a canopen bus, or sim "
+                                  "with link = \"can\", can)")
         self._workers: Dict[str, BusWorker] = {
             bus: BusWorker(bus, guard.maintain) for bus, guard in self.guards.items()}
         self.shared: Dict[str, SharedReads] = {
@@ -238,8 +242,13 @@ def build_engine(table: AxisTable, *, params: Optional[ParameterStore] = None,
         for backend in backends:
             backend.close()
         raise
-    return Engine(table, nodes, params=params, backends=backends, link_probes=probes,
-                  unopened=unopened, **options)
+    try:
+        return Engine(table, nodes, params=params, backends=backends, link_probes=probes,
+                      unopened=unopened, **options)
+    except BaseException:  # e.g. a cyclic axis on a bus that cannot stream set-points
+        for backend in backends:
+            backend.close()
+        raise
 
 
 def _open(table: AxisTable, name: str, bus: Any, axes: List[AxisConfig]) -> Any:

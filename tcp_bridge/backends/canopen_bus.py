@@ -17,6 +17,7 @@ interface works::
     heartbeat_ms = 100        # the bridge's heartbeat, which the drives watch (unset: none)
     heartbeat_node_id = 127   # its node-ID; heartbeat_consumer_ms, abort_connection:
                               # see tcp_bridge.backends.heartbeat
+    cycle_ms = 10             # the set-point cycle of internal axes in CSP (cyclic = "csp")
 
 A bus served over the socketcand protocol (linux-can socketcand, or
 ``epos-link sim --can-server`` / ``tcp-bridge serve --simulate --can-server``,
@@ -41,6 +42,12 @@ the dictionary's 1800h/1A00h objects (and the mapped objects): an EDS is
 required. With ``heartbeat_ms`` each drive stops (quick stop by default) when
 the bridge's heartbeat stops (issue 23; :mod:`.heartbeat`,
 :mod:`tcp_bridge.motion.supervision`).
+
+A bus with internal axes in CSP (``cyclic = "csp"``, issue 26) gets a set-point
+thread (:class:`tcp_bridge.motion.cyclic.CyclicSender`, RPDO3 every
+``cycle_ms``) and must have ``heartbeat_ms``: when the bridge dies, only the
+drives' heartbeat consumers stop them (ConfigError without it). An EDS is
+needed for the RPDO mapping.
 """
 from __future__ import annotations
 
@@ -51,6 +58,7 @@ from typing import Any, Callable, Dict, Optional, Sequence
 
 import canopen
 
+from ..motion.cyclic import CanopenSetpoints, CyclicSender
 from ..motion.supervision import Supervision
 from ..errors import BusUnavailable
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
@@ -64,6 +72,7 @@ class FedNode(canopen.RemoteNode):  # type: ignore[misc]
 
     status_feed: Optional[StatusFeed] = None
     supervision: Optional[Supervision] = None  # heartbeat_ms: the drive's consumer
+    cyclic: Optional[CyclicSender] = None  # cyclic = "csp": the bus's set-point thread
 
 
 def _pdo_settings(bus: str, options: Dict[str, Any]) -> Optional[PdoSettings]:
@@ -173,6 +182,19 @@ class CanopenBackend:
                               "or a path), for the PDO objects 1800h/1A00h")
         self.pdo: Optional[PdoStatus] = PdoStatus(bus.name, settings) if settings else None
         heartbeat = heartbeat_settings(bus.name, options, axes)
+        self.cyclic_nodes = frozenset(a.node_id for a in axes if a.cyclic is not None)
+        cycle_ms = options.pop("cycle_ms", 10)
+        if isinstance(cycle_ms, bool) or not isinstance(cycle_ms, (int, float)) \
+                or not 1 <= cycle_ms <= 1000:
+            raise ConfigError(f"bus {bus.name}: cycle_ms must be a number 1..1000, not "
+                              f"{cycle_ms!r}")
+        if self.cyclic_nodes and heartbeat is None:
+            raise ConfigError(f"bus {bus.name}: axes in a cyclic mode (cyclic = \"csp\") need "
+                              "heartbeat_ms: a drive in CSP holds its last set-point, and only "
+                              "its heartbeat consumer stops it when the bridge dies")
+        if self.cyclic_nodes and self.eds in (None, "none", ""):
+            raise ConfigError(f"bus {bus.name}: cyclic axes need an EDS (eds = \"default\" or a "
+                              "path), for the RPDO mapping 1402h/1602h")
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.05  # a quick notifier stop on close
         if options.get("interface") == "socketcand":
@@ -189,6 +211,9 @@ class CanopenBackend:
         self.nodes: Dict[int, FedNode] = {}
         self.heartbeat: Optional[HeartbeatProducer] = (
             HeartbeatProducer(bus.name, self.network, heartbeat) if heartbeat else None)
+        self.cyclic: Optional[CyclicSender] = (
+            CyclicSender(bus.name, CanopenSetpoints(self.network), cycle_ms / 1000.0)
+            if self.cyclic_nodes else None)
 
     def node(self, node_id: int) -> FedNode:
         node = self.nodes.get(node_id)
@@ -201,6 +226,8 @@ class CanopenBackend:
                 node.status_feed = self.pdo.add(node)
             if self.heartbeat is not None:
                 node.supervision = self.heartbeat.supervision(node_id)
+            if node_id in self.cyclic_nodes:
+                node.cyclic = self.cyclic
             self.nodes[node_id] = node
         return node
 
@@ -210,6 +237,8 @@ class CanopenBackend:
         never attaches, so it sends nothing)."""
         if self.heartbeat is not None:
             self.heartbeat.start()
+        if self.cyclic is not None:
+            self.cyclic.begin()
         if self.pdo is not None:
             self.pdo.attach_worker(post)
 

@@ -37,7 +37,7 @@ from .epos import EposBackend
 from .heartbeat import HEARTBEAT_OPTIONS
 
 CAN_OPTIONS: Final = ("eds", "sdo_timeout", "sdo_retries", "pdo", "pdo_max_age",
-                      "pdo_event_timer", "pdo_inhibit_time", *HEARTBEAT_OPTIONS)
+                      "pdo_event_timer", "pdo_inhibit_time", "cycle_ms", *HEARTBEAT_OPTIONS)
 
 
 def _start_can_server(bus: str, options: Dict[str, Any], simulator: Any) -> Any:

@@ -22,6 +22,7 @@ from typing import Any, Dict, Final, Optional, Tuple
 from ..bus.sdo import NodeSilent, SdoPort
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import Cia402, Timing
+from ..motion.cyclic import CyclicSender
 from ..tables.axes import AxisConfig, DeviceCode, from_stored, parameter_spec
 from ..tables.commands import COMMANDS, ObjectRef, Quantity
 from ..tables.parameters import ParameterStore
@@ -79,6 +80,10 @@ class AxisRuntime:
             self.drive.coasting = self._coasting
             # canopen backend with heartbeat_ms: the drive's heartbeat consumer (issue 23).
             self.drive.supervision = getattr(port.node, "supervision", None)
+        # cyclic = "csp" (issue 26): the bus's set-point thread, which moves this axis.
+        self.cyclic: Optional[CyclicSender] = (
+            getattr(getattr(port, "node", None), "cyclic", None)
+            if config.cyclic is not None else None)
         nmt = getattr(getattr(port, "node", None), "nmt", None)
         if self.drive is not None and nmt is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
@@ -263,6 +268,8 @@ class AxisRuntime:
         """The SDO object behind parameter ``cmd`` on this device, None if internal only
         (26 is "only internal for Technosoft and Copley", 63 "only Nanotec")."""
         spec = parameter_spec(cmd)
+        if cmd in BRIDGE_PROFILE and self.config.cyclic is not None:
+            return None  # the bridge's own profile (issue 26): a CSP drive may lack them
         if cmd == 26 and self.device in _NOT_INTERNAL_26:
             return None
         if cmd == 63 and self.device is not DeviceCode.C_DC_NANOTEC:
@@ -291,6 +298,9 @@ class AxisRuntime:
             f.axis.leader = self
 
 
+# 05 velocity, 06 acceleration, 26-28 limits: kept by the bridge for a cyclic axis, whose
+# profile it computes; never written to its drive (6081h, 6083h, 607Fh, 60C5h, 6085h).
+BRIDGE_PROFILE: Final = frozenset({5, 6, 26, 27, 28})
 _NOT_INTERNAL_26: Final = {DeviceCode.C_DC_TECHNOSOFT_CAN, DeviceCode.C_DC_TECHNOSOFT_EC,
                            DeviceCode.C_DC_COBLEY_CAN}
 

@@ -40,6 +40,8 @@ from ..motion import HomingMove, Move, PositionMove, VelocityMove
 from ..tables.commands import COMMANDS, ObjectRef
 from ..tables.units import Number, Scaling
 from .axis import AxisRuntime, Follower
+from .cyclic_moves import (absolute_target, line_move, plan_cyclic_line, relative_target,
+                           stop_cyclic)
 from .writes import check_resolution
 
 log = logging.getLogger("tcp_bridge.plan")
@@ -114,6 +116,8 @@ def halt_all(axes: Sequence[AxisRuntime]) -> None:
     failure: Optional[BaseException] = None
     for axis in axes:
         try:
+            if stop_cyclic(axis):  # a CSP line ramps down on its profile (issue 26)
+                continue
             axis.need_drive().halt()
         except (DeviceFailure, NodeSilent) as exc:
             failure = failure or exc
@@ -149,6 +153,8 @@ def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) ->
     master.need_drive()  # CAN for an axis without a drive
     if how == 8:
         return plan_stop(master)
+    if master.cyclic is not None:
+        return _plan_cyclic_move(master, how)
     value = _value(master, how)
     slave = _slave(master, axes)
     master_move = _what(master, how, 1, value)
@@ -205,8 +211,30 @@ def _start(moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]]) -> None:
     pairs[0][0].move(pairs, accepted)
 
 
+def _plan_cyclic_move(axis: AxisRuntime, how: int) -> MovePlan:
+    """S00=1/2 of an axis in CSP: a line of that axis alone (:mod:`.cyclic_moves`)."""
+    if how not in (1, 2):
+        raise InvalidCommand(f"axis {axis.addr}: S00={how} is not available in cyclic "
+                             f"mode {axis.config.cyclic!r} (only 1, 2 and 8)", cmd=0)
+    target = (absolute_target if how == 1 else relative_target)(axis, axis.user(2))
+    axis.lead(())
+    return MovePlan(line_move([axis], [target]), halt=lambda: halt_all([axis]))
+
+
 def plan_combined(internal: Sequence[AxisRuntime], how: int) -> MovePlan:
-    """Spec 90 with 3.2: 0 stop, 1 LINR (relative by each 02), 2 LINA to zero."""
+    """Spec 90 with 3.2: 0 stop, 1 LINR (relative by each 02), 2 LINA to zero.
+
+    Internal axes in CSP (issue 26) move on one line through the bus's cyclic
+    thread, as one job of the first axis's bus (:mod:`.cyclic_moves`); 0 stops
+    that line. Others are each given their own profile position move."""
+    if internal and internal[0].cyclic is not None:
+        if how == 0:
+            first = internal[0]
+            return MovePlan(lambda: None, (Part(first, partial(halt_all, list(internal)),
+                                                None),), stopping=True)
+        first, run = plan_cyclic_line(internal, how)
+        return MovePlan(lambda: None,
+                        (Part(first, run, partial(halt_all, list(internal))),))
     parts = []
     for axis in internal:
         if how == 0:

@@ -210,6 +210,9 @@ def _status_bit(r: Resolved) -> ReadPlan:
 
 def _target_reached(r: Resolved) -> ReadPlan:
     assert r.axis is not None
+    if r.axis.cyclic is not None:  # the bridge's own profile (issue 26)
+        from .cyclic_moves import cyclic_target_reached
+        return cyclic_target_reached(r.axis)
     port = r.axis.need_port()
 
     def read() -> int:

@@ -28,10 +28,12 @@ from ..bus.sdo import NodeSilent, object_type
 from ..cia402_words import MODES_DISPLAY, STATUSWORD, Mode
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import State, Why
+from ..motion.cyclic import CSP_MODE
 from ..tables.axes import DeviceCode, parameter_spec, to_stored
 from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
 from .axis import VELOCITY_UNIT, AxisRuntime
+from .cyclic_moves import stop_cyclic, wait_stopped
 from .job import Ticket
 from .resolve import Resolved
 
@@ -282,8 +284,25 @@ def _inhibit(r: Resolved) -> WritePlan:
     drive = axis.need_drive()
     if r.value == 1:  # motion rules 1 and 3 (tcp_bridge.motion)
         restore, modes = DriveParameters(axis), allowed_modes(axis)
-        return lambda: drive.enable(restore, modes)
-    return drive.disable
+        if axis.cyclic is None:
+            return lambda: drive.enable(restore, modes)
+        port = axis.need_port()
+
+        def enable_cyclic() -> None:
+            # A drive in CSP follows 607Ah at once when enabled: hold where it stands.
+            if port.read(MODES_DISPLAY, 0) == CSP_MODE:
+                port.write(0x607A, 0, port.read(0x6064, 0))
+            drive.enable(restore, modes | {CSP_MODE})
+        return enable_cyclic
+    if axis.cyclic is None:
+        return drive.disable
+    timeout = drive.timing.ack_timeout
+
+    def disable_cyclic() -> None:
+        stop_cyclic(axis)  # rule 1: ramp down on the profile first, then disable
+        wait_stopped(axis, timeout)
+        drive.disable()
+    return disable_cyclic
 
 
 def _mode(r: Resolved) -> WritePlan:

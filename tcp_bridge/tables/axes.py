@@ -142,6 +142,9 @@ class AxisConfig:
     # Device 5 (EPOS4): motor encoder increments per motor revolution, after
     # quadrature (4 x 3010h/01h pulses); velocities are rpm (tcp_bridge.tables.units).
     increments_per_revolution: Optional[int] = None
+    # Spec 3.2 internal axis whose profile the bridge computes: "csp" (cyclic synchronous
+    # position, streamed by tcp_bridge.motion.cyclic); None: the drive's own profile modes.
+    cyclic: Optional[str] = None
 
     @property
     def bus(self) -> str:
@@ -262,6 +265,38 @@ def _validate(table: AxisTable) -> None:
         if slave and (slave == addr or slave not in table.axes):
             raise ConfigError(f"{where}: parameters.slave_axis: slave axis {slave} is not "
                               "another configured axis")
+    _validate_cyclic(table)
+
+
+CYCLIC_MODES: Final = ("csp",)
+
+
+def _validate_cyclic(table: AxisTable) -> None:
+    """Internal axes in a cyclic mode (docs/bridge.md, "Internal axes in CSP")."""
+    src = table.source
+    cyclic = [a for a in table.axes.values() if a.cyclic is not None]
+    for axis in cyclic:
+        where = f"{src}: [[axis]] AxAddr {axis.addr}: cyclic"
+        if axis.cyclic not in CYCLIC_MODES:
+            raise ConfigError(f"{where}: {axis.cyclic!r} is not one of "
+                              f"{', '.join(repr(m) for m in CYCLIC_MODES)}")
+        if not axis.internal or not axis.has_node:
+            raise ConfigError(f"{where}: only an internal axis with a drive (internal = true, "
+                              "node_id set) is moved by the bridge's own profile (spec 3.2)")
+    if not cyclic:
+        return
+    # Chosen: command 90 moves all internal axes with a drive on one line, through one
+    # cyclic thread: so they are all cyclic, on one bus (one clock, one worker).
+    driven = [a for a in table.internal_axes if a.has_node]
+    plain = [a.addr for a in driven if a.cyclic is None]
+    if plain:
+        raise ConfigError(f"{src}: [[axis]] AxAddr {plain[0]}: cyclic: the internal axes "
+                          f"{[a.addr for a in cyclic]} are cyclic, so every internal axis with "
+                          "a drive must be (command 90 moves them on one line)")
+    buses = sorted({a.bus for a in cyclic})
+    if len(buses) > 1:
+        raise ConfigError(f"{src}: [[axis]] cyclic: the cyclic internal axes are on buses "
+                          f"{buses}; they must share one bus (one set-point thread)")
 
 
 def simulated_table(count: int = 1, *, state_file: Optional[Path] = None,

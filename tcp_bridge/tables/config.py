@@ -41,7 +41,7 @@ else:  # pragma: no cover - exercised on 3.10 only
 
 TOP_LEVEL = ("bridge", "bus", "axis")
 AXIS_KEYS = ("addr", "device", "internal", "bus_offset", "node_id", "position_factor",
-             "parameters", IPR_KEY)
+             "parameters", IPR_KEY, "cyclic")
 # [bridge] keys: (check, description) by name; state_file and allow are special.
 POSITIVE = ("ack_timeout", "state_timeout", "reset_timeout", "idle_timeout", "probe_interval")
 NON_NEGATIVE = ("reset_delay", "poll_interval")
@@ -224,8 +224,11 @@ def _axis(row: Dict[str, Any], position: int, where: str) -> AxisConfig:
     params = _parameters(_table(row.get("parameters", {}), f"{where}: parameters",
                                 " (write [axis.parameters] below the [[axis]] it belongs to)"),
                          factor, where)
+    cyclic = row.get("cyclic")
+    if cyclic is not None and not isinstance(cyclic, str):
+        raise ConfigError(f"{where}: cyclic: must be a string (\"csp\"), not {_shown(cyclic)}")
     return AxisConfig(addr, DeviceCode(device), internal, BusOffset(bus_offset), node_id, factor,
-                      MappingProxyType(params), ipr)
+                      MappingProxyType(params), ipr, cyclic)
 
 
 def _parameters(raw: Dict[str, Any], factor: int, where: str) -> Dict[int, Number]:

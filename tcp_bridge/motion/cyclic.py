@@ -1,0 +1,269 @@
+"""The cyclic sender: one thread per bus that streams CSP set-points (PSI spec 3.2).
+
+An internal axis declared ``cyclic = "csp"`` (docs/bridge.md) runs in cyclic
+synchronous position mode (CiA 402-2 mode 8): the drive follows its target
+position 607Ah as it comes, so the bridge computes the profile
+(:mod:`.profile`) and this thread sends a sample of it every ``cycle_ms``
+through the bus's process data. The transport is an interface,
+:class:`Setpoints`: the ``canopen`` backend implements it with RPDO3
+(controlword + 607Ah, the EPOS4's default mapping; :class:`CanopenSetpoints`);
+an EtherCAT backend implements the same three methods with its process data
+(RxPDO 1600h: controlword, target position) and needs nothing else here.
+
+The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
+
+* **Motion only on a move command**: the thread sends only while a run is
+  active, and a run starts only from a move (S90, S00=1/2). Before it, on
+  the bus worker (:func:`tcp_bridge.plan.cyclic_moves`), the drive gets mode
+  8 with 607Ah equal to its actual position, so entering CSP moves nothing,
+  and the run's first sample is that same position: no jump.
+* **ACK only when the profile started**: :meth:`CyclicSender.start` returns
+  once the thread has sent the run's first set-points and the transport took
+  them; a run that could not be sent is a :class:`DeviceFailure` (NAK).
+* **Stop and disable ramp down**: :meth:`CyclicSender.stop` replaces the
+  run's profile by its stop ramp (:meth:`.profile.Line.stop_at`) at the
+  next cycle, never a step. A transport error ends the run (logged); the
+  drive then holds its last set-point.
+* **A lost cycle thread ends in the drive's own reaction**: on CAN that is
+  the heartbeat consumer (issue 23): a bus with cyclic axes must have
+  ``heartbeat_ms`` (ConfigError otherwise), so a bridge that dies stops
+  sending set-points *and* heartbeats, and each drive quick-stops (6007h)
+  from the last set-point it holds. The heartbeat is python-can's own
+  periodic task, so it proves the process runs, not that this thread does:
+  **chosen** guard, :meth:`CyclicSender.alive` is logged when the thread
+  died with runs active. A drive's own CSP watchdog (e.g. a sync or PDO
+  timeout) is drive specific and not set up by the bridge.
+
+Timing: the thread keeps an absolute schedule (``next += cycle``); a cycle that
+comes late samples the profile at the real time, so a late set-point is the
+right one for its moment, and cycles missed are skipped, not sent in a burst.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Protocol, Tuple
+
+from ..errors import DeviceFailure
+from .profile import Line
+
+log = logging.getLogger("tcp_bridge.motion")
+
+CSP_MODE = 8  # CiA 402-2 6060h: cyclic synchronous position mode
+CSP_CONTROLWORD = 0x000F  # enable operation, halt clear: CSP follows 607Ah (halt not evaluated)
+
+
+class Setpoints(Protocol):
+    """What the sender needs of a bus's process data (canopen RPDOs, EtherCAT PDOs)."""
+
+    def prepare(self, node: int) -> None:
+        """Before a node's first run (bus worker, SDO allowed): map its process data."""
+
+    def write_targets(self, targets: Mapping[int, int]) -> None:
+        """Send a target position (607Ah, increments) to each node; the cycle thread."""
+
+    def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
+        """The actual position (6064h) of each node; bus worker only."""
+
+
+@dataclass
+class Run:
+    """One profile being streamed to some nodes of the bus."""
+
+    nodes: Tuple[int, ...]
+    line: Line
+    started: threading.Event = field(default_factory=threading.Event)
+    ended: threading.Event = field(default_factory=threading.Event)
+    failure: Optional[str] = None
+
+
+class CyclicSender:
+    """The set-point thread of one bus (module docstring)."""
+
+    def __init__(self, bus: str, transport: Setpoints, cycle_s: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not 0.001 <= cycle_s <= 1.0:
+            raise ValueError(f"cycle must be 1..1000 ms, not {cycle_s * 1e3:g} ms")
+        self.bus = bus
+        self.transport = transport
+        self.cycle = cycle_s
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._runs: List[Run] = []
+        self._last: Dict[int, Run] = {}  # each node's latest run (R82)
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    # -- the thread -------------------------------------------------------------------
+
+    def begin(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name=f"cyclic-{self.bus}",
+                                            daemon=True)
+            self._thread.start()
+
+    def close(self) -> None:
+        """Clean shutdown: the runs are stopped on their ramps first (bounded wait)."""
+        with self._lock:
+            runs = list(self._runs)
+        for run in runs:
+            self.stop(run.nodes)
+        for run in runs:
+            run.ended.wait(min(10.0, max(0.0, run.line.end_time - self.clock()) + 1.0))
+        self.kill()
+
+    def kill(self) -> None:
+        """End the thread at once, nothing more sent (tests: a dead bridge)."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(5)
+
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive() and not self._stop.is_set()
+
+    def _loop(self) -> None:
+        next_at = self.clock()
+        while not self._stop.is_set():
+            if not self._cycle():
+                self._wake.wait(1.0)  # idle: nothing to send until a run starts
+                self._wake.clear()
+                next_at = self.clock()
+                continue
+            next_at += self.cycle
+            now = self.clock()
+            if next_at < now:  # late: skip the missed cycles, no burst
+                next_at = now
+            self._stop.wait(next_at - now)
+
+    def _cycle(self) -> bool:
+        """Send one sample of every active run; False when there is none."""
+        now = self.clock()
+        with self._lock:
+            runs = list(self._runs)
+        if not runs:
+            return False
+        targets: Dict[int, int] = {}
+        for run in runs:
+            for node, position in zip(run.nodes, run.line.positions(now)):
+                targets[node] = round(position)
+        try:
+            self.transport.write_targets(targets)
+        except Exception as exc:  # a bus error: the drives hold their last set-points
+            log.error("bus %s: set-points not sent (%s); the cyclic moves of nodes %s end "
+                      "here", self.bus, exc, sorted(targets))
+            with self._lock:
+                for run in runs:
+                    run.failure = str(exc) or type(exc).__name__
+                    self._end(run)
+            return True
+        with self._lock:
+            for run in runs:
+                run.started.set()
+                if run.line.finished(now) and run in self._runs:
+                    self._end(run)  # its last sample was the target itself
+        return True
+
+    def _end(self, run: Run) -> None:
+        if run in self._runs:
+            self._runs.remove(run)
+        run.started.set()
+        run.ended.set()
+
+    # -- the bus worker's side ----------------------------------------------------------
+
+    def active(self, node: int) -> Optional[Run]:
+        with self._lock:
+            return next((r for r in self._runs if node in r.nodes), None)
+
+    def last(self, node: int) -> Optional[Run]:
+        """The node's latest run, active or ended (target reached, R82)."""
+        with self._lock:
+            return self._last.get(node)
+
+    def start(self, nodes: Tuple[int, ...], line: Line, timeout: float) -> Run:
+        """Stream ``line`` to ``nodes``; returns once its first set-points went out."""
+        if not self.alive() and self._thread is not None:
+            raise DeviceFailure(f"bus {self.bus}: the cyclic thread has ended")
+        with self._lock:
+            busy = sorted(n for r in self._runs for n in r.nodes if n in nodes)
+            if busy:
+                raise DeviceFailure(f"bus {self.bus}: nodes {busy} are still on a cyclic move; "
+                                    "stop them first (S90=0 or S00=8)")
+            run = Run(tuple(nodes), line)
+            self._runs.append(run)
+            for n in nodes:
+                self._last[n] = run
+        self.begin()
+        self._wake.set()
+        if not run.started.wait(timeout):
+            self.stop(nodes)
+            raise DeviceFailure(f"bus {self.bus}: the first set-points were not sent within "
+                                f"{timeout:g} s; the move was stopped")
+        if run.failure is not None:
+            raise DeviceFailure(f"bus {self.bus}: the set-points were not sent: {run.failure}")
+        return run
+
+    def stop(self, nodes: Iterable[int]) -> List[Run]:
+        """Every active run of ``nodes`` ramps down on its line from now (never a step)."""
+        wanted = set(nodes)
+        now = self.clock()
+        with self._lock:
+            stopped = [r for r in self._runs if wanted & set(r.nodes)]
+            for run in stopped:
+                run.line = run.line.stop_at(now)
+        return stopped
+
+
+class CanopenSetpoints:
+    """:class:`Setpoints` through canopen's PDO API: RPDO3 = controlword + 607Ah.
+
+    RPDO3 is the EPOS4's default mapping for exactly these two objects (the
+    guide's default connection set, COB-ID 400h + node-ID); the bridge maps it
+    again before a node's run (idempotent) and puts the node in NMT
+    Operational, where RPDOs count (CiA 301 7.3.2.2). Event-driven (type 255):
+    each frame is acted upon at once; a SYNC-driven mapping is left to an
+    EtherCAT-like transport with distributed clocks.
+    """
+
+    RPDO = 3
+
+    def __init__(self, network: Any) -> None:
+        self.network = network
+        self._vars: Dict[int, Tuple[Any, Any, Any]] = {}  # node -> (pdo, controlword, target)
+
+    def prepare(self, node: int) -> None:
+        remote = self.network[node]
+        pdo = remote.rpdo[self.RPDO]
+        pdo.read()
+        pdo.clear()
+        controlword = pdo.add_variable(0x6040)
+        target = pdo.add_variable(0x607A)
+        if controlword is None or target is None:  # canopen logs and returns None
+            raise DeviceFailure(f"node {node}: 6040h or 607Ah is not in the object dictionary "
+                                "(an EDS is needed for CSP)")
+        pdo.trans_type = 255
+        pdo.enabled = True
+        pdo.save()
+        remote.nmt.state = "OPERATIONAL"
+        self._vars[node] = (pdo, controlword, target)
+
+    def write_targets(self, targets: Mapping[int, int]) -> None:
+        for node, position in targets.items():
+            pdo, controlword, target = self._vars[node]
+            target.raw = position
+            controlword.raw = CSP_CONTROLWORD
+            pdo.transmit()
+
+    def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
+        out: Dict[int, int] = {}
+        for n in nodes:
+            data = self.network[n].sdo.upload(0x6064, 0)  # INTEGER32, CiA 402-2 6.5
+            out[n] = int.from_bytes(data[:4], "little", signed=True)
+        return out
+
+__all__ = ["CSP_CONTROLWORD", "CSP_MODE", "CanopenSetpoints", "CyclicSender", "Run",
+           "Setpoints"]

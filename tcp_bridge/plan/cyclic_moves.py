@@ -1,0 +1,173 @@
+"""Moves of internal axes in CSP (issue 26, PSI spec 3.2 and command 90): what each
+drive is told, fixed when the request is resolved; the stream is :mod:`tcp_bridge.motion.cyclic`.
+
+* 90=1 LINR: every internal axis by its own 02, relative to where it stands;
+  90=2 LINA: every internal axis to user position 0; both on one straight
+  line (:func:`tcp_bridge.motion.profile.plan_line`), starting and arriving
+  together. S00=1/2 of one cyclic axis is a line of that axis alone.
+* Limits, in user units and converted with the axis's position factor: the
+  velocity is 05, bounded by 26 (either alone if only one is set); the
+  acceleration 06, bounded by 27; a stop's deceleration 28, else the
+  acceleration. No velocity or no acceleration is CAN (nothing to move with).
+  These values are kept by the bridge, never written to the drive
+  (:data:`tcp_bridge.plan.axis.BRIDGE_PROFILE`).
+* 90=0, S00=8 and S04=0 stop the line the axis is on (all its axes together,
+  staying on the line: :mod:`tcp_bridge.motion.profile`, chosen).
+* On the bus worker, before the stream: every axis enabled and supervised
+  (heartbeat consumer), its RPDO mapped, 607Ah written with its actual
+  position 6064h, then mode 8 (so that entering CSP moves nothing), then the
+  run, whose first set-point is that same position. The ACK comes once the
+  first set-points went out and every drive still shows OPERATION ENABLED.
+* R82 of a cyclic axis: its latest run has ended and the actual position
+  6064h is within the position window 6067h of the run's target (a drive in
+  CSP need not set statusword bit 10).
+
+Velocity moves (S00=3, CSV) of a cyclic axis are not implemented: CAN.
+"""
+from __future__ import annotations
+
+from typing import Callable, List, Optional, Sequence, Tuple
+
+from ..cia402_words import MODES_DISPLAY, Deadline
+from ..errors import DeviceFailure, InvalidCommand
+from ..motion.cyclic import CSP_MODE, CyclicSender
+from ..motion.profile import AxisLimits, plan_line
+from .axis import AxisRuntime
+
+POSITION_ACTUAL = 0x6064
+TARGET_POSITION = 0x607A
+POSITION_WINDOW = 0x6067
+MODES_OF_OPERATION = 0x6060
+
+Target = Callable[[int], int]  # drive position where the axis stands -> its target
+
+
+def _bounded(value: Optional[float], bound: Optional[float]) -> Optional[float]:
+    values = [abs(v) for v in (value, bound) if v is not None and v != 0]
+    return min(values) if values else None
+
+
+def limits(axis: AxisRuntime) -> AxisLimits:
+    """The axis's profile limits in increments (module doc); InvalidCommand without."""
+    factor = axis.config.position_factor
+    velocity = _bounded(axis.user(5), axis.user(26))
+    acceleration = _bounded(axis.user(6), axis.user(27))
+    if velocity is None or acceleration is None:
+        raise InvalidCommand(f"axis {axis.addr}: no velocity (S05/S26) or acceleration "
+                             "(S06/S27) set for its cyclic profile")
+    stop = _bounded(axis.user(28), None) or acceleration
+    return AxisLimits(velocity * factor, acceleration * factor, stop * factor)
+
+
+def sender_of(axes: Sequence[AxisRuntime]) -> CyclicSender:
+    sender = axes[0].cyclic
+    assert sender is not None and all(a.cyclic is sender for a in axes)
+    return sender
+
+
+def relative_target(axis: AxisRuntime, user: Optional[float]) -> Target:
+    if user is None:
+        raise InvalidCommand(f"axis {axis.addr}: no target position (S02) set")
+    scaling = axis.scaling()
+    distance = scaling.to_drive(user) * scaling.inversion  # a distance: never offset
+    return lambda here: here + distance
+
+
+def absolute_target(axis: AxisRuntime, user: Optional[float]) -> Target:
+    if user is None:
+        raise InvalidCommand(f"axis {axis.addr}: no target position (S02) set")
+    raw = axis.scaling().position_to_drive(user)
+    return lambda here: raw
+
+
+def line_move(axes: Sequence[AxisRuntime], targets: Sequence[Target]) -> Callable[[], None]:
+    """The bus job that moves ``axes`` on one line to ``targets`` (module doc)."""
+    fixed = [limits(a) for a in axes]  # resolved now: later S05/S06 do not change it
+    sender = sender_of(axes)
+
+    def run() -> None:
+        drives = [a.need_drive() for a in axes]
+        for axis in axes:
+            if sender.active(axis.config.node_id) is not None:
+                raise DeviceFailure(f"axis {axis.addr}: still on a cyclic move; stop it first")
+        for drive in drives:
+            drive.require_enabled()
+            drive.ensure_supervised()
+        deadline = Deadline(drives[0]._clock, drives[0].timing.ack_timeout)
+        starts: List[int] = []
+        for axis, drive in zip(axes, drives):
+            port = axis.need_port()
+            sender.transport.prepare(axis.config.node_id)
+            here = port.read(POSITION_ACTUAL, 0)
+            port.write(TARGET_POSITION, 0, here)  # entering CSP holds where it stands
+            if port.read(MODES_DISPLAY, 0) != CSP_MODE:
+                drive.set_mode(CSP_MODE, deadline)
+            starts.append(here)
+        ends = [target(here) for target, here in zip(targets, starts)]
+        for drive, end in zip(drives, ends):
+            drive._within_limits(end)  # 607Dh: never sent beyond it (motion.start)
+        for axis in axes:
+            axis.moving_ack = 0
+        line = plan_line(starts, ends, fixed, sender.clock() + sender.cycle)
+        nodes = tuple(a.config.node_id for a in axes)
+        sender.start(nodes, line, max(deadline.time_left(), 10 * sender.cycle))
+        for drive in drives:
+            drive.require_enabled()  # the drive took the first set-points
+        for axis in axes:
+            axis.moving_ack = 1
+    return run
+
+
+def stop_cyclic(axis: AxisRuntime) -> bool:
+    """S00=8, S90=0, S04=0: the axis's line ramps down; False if it was not on one."""
+    if axis.cyclic is None:
+        return False
+    return bool(axis.cyclic.stop([axis.config.node_id]))
+
+
+def wait_stopped(axis: AxisRuntime, timeout: float) -> None:
+    """Before a disable: the axis's stop ramp has ended (nothing streams to it)."""
+    if axis.cyclic is None:
+        return
+    run = axis.cyclic.active(axis.config.node_id)
+    if run is None:
+        return
+    wait = max(0.0, run.line.end_time - axis.cyclic.clock()) + timeout
+    if not run.ended.wait(wait):
+        raise DeviceFailure(f"axis {axis.addr}: its cyclic stop ramp did not end within "
+                            f"{wait:g} s; the axis stays enabled")
+
+
+def cyclic_target_reached(axis: AxisRuntime) -> Callable[[], int]:
+    """R82 of a cyclic axis (module doc)."""
+    port = axis.need_port()
+    sender = axis.cyclic
+    assert sender is not None
+
+    def read() -> int:
+        run = sender.last(axis.config.node_id)
+        if run is None:
+            return 0  # never moved by the bridge: no target of ours to be in
+        if not run.ended.is_set():
+            return 0
+        index = run.nodes.index(axis.config.node_id)
+        target = round(run.line.targets[index])
+        window = port.read(POSITION_WINDOW, 0)
+        return int(abs(port.read(POSITION_ACTUAL, 0) - target) <= window)
+    return read
+
+
+def plan_cyclic_line(internal: Sequence[AxisRuntime], how: int) -> Tuple[AxisRuntime,
+                                                                        Callable[[], None]]:
+    """90=1 / 90=2 of cyclic internal axes: the first axis (whose bus runs it) and the job."""
+    if how == 1:
+        targets = [relative_target(a, a.user(2)) for a in internal]
+    else:
+        targets = [absolute_target(a, 0.0) for a in internal]
+    for axis in internal:
+        axis.lead(())
+    return internal[0], line_move(internal, targets)
+
+
+__all__ = ["absolute_target", "cyclic_target_reached", "limits", "line_move",
+           "plan_cyclic_line", "relative_target", "stop_cyclic", "wait_stopped"]
