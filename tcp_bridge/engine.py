@@ -39,6 +39,7 @@ from .bus.workers import BusWorker
 from .errors import BusUnavailable, InvalidCommand
 from .motion import Timing
 from .plan.axis import AxisRuntime
+from .plan.cyclic_moves import install_rest
 from .plan.job import Job
 from .plan.planner import plan, releasing
 from .plan.resolve import Resolved, resolve
@@ -112,6 +113,7 @@ class Engine:
                 raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: cyclic: bus "
                                   f"{axis.bus} cannot stream set-points (a canopen bus, or sim "
                                   "with link = \"can\", can)")
+            install_rest(self.axes[addr])  # a cyclic axis rests by its own profile
         self._workers: Dict[str, BusWorker] = {
             bus: BusWorker(bus, guard.maintain) for bus, guard in self.guards.items()}
         self.shared: Dict[str, SharedReads] = {

@@ -87,6 +87,8 @@ class Cia402(MoveStarts, Recovery):
         self._own_reset_until = float("-inf")  # boot-ups before this are our own reset's
         # The drive's heartbeat consumer (heartbeat_ms on a canopen bus), None without.
         self.supervision: Optional[Supervision] = None
+        # Internal axis in CSP (tcp_bridge.plan.cyclic_moves): its own way to come to rest.
+        self.rest: Optional[Callable[[Deadline], None]] = None
         watch = getattr(port, "watch", None)
         if watch is not None:
             watch(STATUSWORD, self._observe)
@@ -178,7 +180,14 @@ class Cia402(MoveStarts, Recovery):
                          "end of quick stop")
 
     def bring_to_rest(self, deadline: Deadline) -> None:
-        """Halt (cw bit 8) and wait for standstill (sw bit 10) within ``deadline``."""
+        """Halt (cw bit 8) and wait for standstill (sw bit 10) within ``deadline``.
+
+        An axis moved by the bridge's own profile (``rest`` set, issue 26) is
+        brought to rest by that profile's stop ramp instead: halt is not evaluated
+        in CSP and the drive need not set bit 10 there."""
+        if self.rest is not None:
+            self.rest(deadline)
+            return
         self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)
         self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
                          "standstill after halt (the axis stays enabled and halted)")

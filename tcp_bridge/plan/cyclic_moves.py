@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import Callable, List, Optional, Sequence, Tuple
 
-from ..cia402_words import MODES_DISPLAY, Deadline
+from ..cia402_words import CONTROLWORD, MODES_DISPLAY, Cw, Deadline
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion.cyclic import CSP_MODE, CyclicSender
 from ..motion.profile import AxisLimits, plan_line
@@ -37,7 +37,7 @@ from .axis import AxisRuntime
 POSITION_ACTUAL = 0x6064
 TARGET_POSITION = 0x607A
 POSITION_WINDOW = 0x6067
-MODES_OF_OPERATION = 0x6060
+VELOCITY_ACTUAL = 0x606C
 
 Target = Callable[[int], int]  # drive position where the axis stands -> its target
 
@@ -138,6 +138,25 @@ def wait_stopped(axis: AxisRuntime, timeout: float) -> None:
                             f"{wait:g} s; the axis stays enabled")
 
 
+def install_rest(axis: AxisRuntime) -> None:
+    """How a cyclic axis comes to rest before a disable, reset or mode change (motion
+    rule 1): its line's stop ramp, then halt set and velocity 606Ch zero."""
+    drive, port = axis.drive, axis.port
+    if axis.cyclic is None or drive is None or port is None:
+        return
+
+    def rest(deadline: Deadline) -> None:
+        stop_cyclic(axis)
+        wait_stopped(axis, deadline.time_left())
+        port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # rule 2: halted from now
+        while port.read(VELOCITY_ACTUAL, 0) != 0:
+            if deadline.expired():
+                raise DeviceFailure(f"{port.name}: still moving (606Ch) after its cyclic stop "
+                                    "ramp; the axis stays enabled")
+            drive._sleep(max(drive.timing.poll_interval, 0.005))
+    drive.rest = rest
+
+
 def cyclic_target_reached(axis: AxisRuntime) -> Callable[[], int]:
     """R82 of a cyclic axis (module doc)."""
     port = axis.need_port()
@@ -169,5 +188,5 @@ def plan_cyclic_line(internal: Sequence[AxisRuntime], how: int) -> Tuple[AxisRun
     return internal[0], line_move(internal, targets)
 
 
-__all__ = ["absolute_target", "cyclic_target_reached", "limits", "line_move",
+__all__ = ["absolute_target", "cyclic_target_reached", "install_rest", "limits", "line_move",
            "plan_cyclic_line", "relative_target", "stop_cyclic", "wait_stopped"]

@@ -33,7 +33,6 @@ from ..tables.axes import DeviceCode, parameter_spec, to_stored
 from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
 from .axis import VELOCITY_UNIT, AxisRuntime
-from .cyclic_moves import stop_cyclic, wait_stopped
 from .job import Ticket
 from .resolve import Resolved
 
@@ -294,15 +293,7 @@ def _inhibit(r: Resolved) -> WritePlan:
                 port.write(0x607A, 0, port.read(0x6064, 0))
             drive.enable(restore, modes | {CSP_MODE})
         return enable_cyclic
-    if axis.cyclic is None:
-        return drive.disable
-    timeout = drive.timing.ack_timeout
-
-    def disable_cyclic() -> None:
-        stop_cyclic(axis)  # rule 1: ramp down on the profile first, then disable
-        wait_stopped(axis, timeout)
-        drive.disable()
-    return disable_cyclic
+    return drive.disable  # a cyclic axis ramps down on its profile first (cyclic_moves.rest)
 
 
 def _mode(r: Resolved) -> WritePlan:
