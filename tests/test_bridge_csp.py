@@ -295,3 +295,38 @@ def test_a_single_cyclic_axis_moves_on_s00(engine: Engine) -> None:
     assert ask(engine, "2S00=2")[0] is Status.ACK  # relative: 5 more
     wait_until(lambda: ask(engine, "2R82")[1] == "1", 30, "S00=2 did not end in target")
     assert ask(engine, "2R12")[1] == "10"
+
+
+def test_a_quick_stop_from_elsewhere_is_not_undone_by_the_set_points(engine: Engine) -> None:
+    """Another master (or the drive itself) quick-stops a drive mid-move with 605Ah = 6
+    (maxon's EDS default: stay in QUICK STOP ACTIVE). The bridge's set-point frames
+    must not carry an "enable operation" that takes it back to OPERATION ENABLED
+    (CiA 402-2 transition 16), where CSP would jump to the latest set-point."""
+    sim = engine.backends[0].simulator
+    for n in NODES:
+        with sim.drives[n].lock:
+            sim.drives[n].store.write_value(0x605A, 0, 6)
+    enable_both(engine)
+    assert ask(engine, "1S02=60")[0] is Status.ACK
+    assert ask(engine, "2S02=60")[0] is Status.ACK
+    assert ask(engine, "1S90=1")[0] is Status.ACK
+    drive = sim.drives[2]
+    wait_until(lambda: abs(drive.drive.velocity) > 0, 10, "the move never started")
+    with drive.lock:
+        drive.store.write_value(0x6040, 0, 0x0002)  # quick stop (CiA 402-2 command table)
+    wait_until(lambda: drive.drive.state is State.QUICK_STOP_ACTIVE, 10, "no quick stop")
+    time.sleep(0.5)  # many set-point cycles
+    with drive.lock:
+        drive.drive.sync()
+        state = drive.drive.state
+    assert state is State.QUICK_STOP_ACTIVE, f"the quick stop was undone: {state.name}"
+    # The client enables it again: the drive must not jump to the last set-point.
+    with drive.lock:
+        drive.drive.sync()
+        where = drive.drive.position
+    status = ask(engine, "1S04=1")[0]
+    time.sleep(0.3)
+    with drive.lock:
+        drive.drive.sync()
+        assert abs(drive.drive.position - where) < FACTOR, (status, where, drive.drive.position)
+        assert status is Status.ACK and drive.drive.state is State.OPERATION_ENABLED

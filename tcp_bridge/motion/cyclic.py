@@ -6,9 +6,9 @@ position 607Ah as it comes, so the bridge computes the profile
 (:mod:`.profile`) and this thread sends a sample of it every ``cycle_ms``
 through the bus's process data. The transport is an interface,
 :class:`Setpoints`: the ``canopen`` backend implements it with RPDO3
-(controlword + 607Ah, the EPOS4's default mapping; :class:`CanopenSetpoints`);
-an EtherCAT backend implements the same three methods with its process data
-(RxPDO 1600h: controlword, target position) and needs nothing else here.
+remapped to 607Ah alone (:class:`CanopenSetpoints` says why no controlword);
+an EtherCAT backend implements the same three methods with its process data,
+whose controlword must likewise be left as the bridge's SDO writes set it.
 
 The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
 
@@ -52,7 +52,6 @@ from .profile import Line
 log = logging.getLogger("tcp_bridge.motion")
 
 CSP_MODE = 8  # CiA 402-2 6060h: cyclic synchronous position mode
-CSP_CONTROLWORD = 0x000F  # enable operation, halt clear: CSP follows 607Ah (halt not evaluated)
 
 
 class Setpoints(Protocol):
@@ -219,43 +218,47 @@ class CyclicSender:
 
 
 class CanopenSetpoints:
-    """:class:`Setpoints` through canopen's PDO API: RPDO3 = controlword + 607Ah.
+    """:class:`Setpoints` through canopen's PDO API: RPDO3 remapped to 607Ah alone.
 
-    RPDO3 is the EPOS4's default mapping for exactly these two objects (the
-    guide's default connection set, COB-ID 400h + node-ID); the bridge maps it
-    again before a node's run (idempotent) and puts the node in NMT
-    Operational, where RPDOs count (CiA 301 7.3.2.2). Event-driven (type 255):
-    each frame is acted upon at once; a SYNC-driven mapping is left to an
-    EtherCAT-like transport with distributed clocks.
+    RPDO3 (COB-ID 400h + node-ID) maps controlword + 607Ah by default on an
+    EPOS4. The bridge remaps it to the target position only, before a node's
+    run (CiA 301 7.5.2.36 procedure, through canopen's ``save``), and puts the
+    node in NMT Operational, where RPDOs count (CiA 301 7.3.2.2). No
+    controlword in the stream, on purpose: "enable operation" repeated every
+    cycle would undo a quick stop that another master, a limit or the drive
+    itself started while the run went on (CiA 402-2 transition 16, QUICK STOP
+    ACTIVE -> OPERATION ENABLED, with 605Ah = 5..8; maxon's EDS default is
+    6), and CSP would then jump to the latest set-point. The drive was enabled
+    by SDO before the run (S04=1); the stream only moves its target.
+    Event-driven (type 255): each frame is acted upon at once; a SYNC-driven
+    mapping is left to an EtherCAT-like transport with distributed clocks.
     """
 
     RPDO = 3
 
     def __init__(self, network: Any) -> None:
         self.network = network
-        self._vars: Dict[int, Tuple[Any, Any, Any]] = {}  # node -> (pdo, controlword, target)
+        self._vars: Dict[int, Tuple[Any, Any]] = {}  # node -> (pdo, target)
 
     def prepare(self, node: int) -> None:
         remote = self.network[node]
         pdo = remote.rpdo[self.RPDO]
         pdo.read()
         pdo.clear()
-        controlword = pdo.add_variable(0x6040)
         target = pdo.add_variable(0x607A)
-        if controlword is None or target is None:  # canopen logs and returns None
-            raise DeviceFailure(f"node {node}: 6040h or 607Ah is not in the object dictionary "
+        if target is None:  # canopen logs and returns None
+            raise DeviceFailure(f"node {node}: 607Ah is not in the object dictionary "
                                 "(an EDS is needed for CSP)")
         pdo.trans_type = 255
         pdo.enabled = True
         pdo.save()
         remote.nmt.state = "OPERATIONAL"
-        self._vars[node] = (pdo, controlword, target)
+        self._vars[node] = (pdo, target)
 
     def write_targets(self, targets: Mapping[int, int]) -> None:
         for node, position in targets.items():
-            pdo, controlword, target = self._vars[node]
+            pdo, target = self._vars[node]
             target.raw = position
-            controlword.raw = CSP_CONTROLWORD
             pdo.transmit()
 
     def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
@@ -265,5 +268,5 @@ class CanopenSetpoints:
             out[n] = int.from_bytes(data[:4], "little", signed=True)
         return out
 
-__all__ = ["CSP_CONTROLWORD", "CSP_MODE", "CanopenSetpoints", "CyclicSender", "Run",
+__all__ = ["CSP_MODE", "CanopenSetpoints", "CyclicSender", "Run",
            "Setpoints"]

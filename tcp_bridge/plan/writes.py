@@ -33,6 +33,7 @@ from ..tables.axes import DeviceCode, parameter_spec, to_stored
 from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
 from .axis import VELOCITY_UNIT, AxisRuntime
+from .cyclic_moves import stop_cyclic, wait_stopped
 from .job import Ticket
 from .resolve import Resolved
 
@@ -288,9 +289,15 @@ def _inhibit(r: Resolved) -> WritePlan:
         port = axis.need_port()
 
         def enable_cyclic() -> None:
-            # A drive in CSP follows 607Ah at once when enabled: hold where it stands.
-            if port.read(MODES_DISPLAY, 0) == CSP_MODE:
-                port.write(0x607A, 0, port.read(0x6064, 0))
+            if drive.state() is not State.OPERATION_ENABLED:
+                # The drive left OPERATION ENABLED under a run (a quick stop, another
+                # master): that run's set-points must not reach it once enabled again,
+                # so its line ramps down and ends first (the others on it stop too).
+                if stop_cyclic(axis):
+                    wait_stopped(axis, drive.timing.ack_timeout)
+                # A drive in CSP follows 607Ah at once when enabled: hold where it stands.
+                if port.read(MODES_DISPLAY, 0) == CSP_MODE:
+                    port.write(0x607A, 0, port.read(0x6064, 0))
             drive.enable(restore, modes | {CSP_MODE})
         return enable_cyclic
     return drive.disable  # a cyclic axis ramps down on its profile first (cyclic_moves.rest)
