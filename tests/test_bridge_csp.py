@@ -193,8 +193,13 @@ def test_a_disable_mid_move_ramps_down_first(engine: Engine) -> None:
 # -- a dead bridge ------------------------------------------------------------------------------
 
 
-def test_a_dead_bridge_ends_in_the_drives_quick_stop_not_a_jump() -> None:
+@pytest.mark.parametrize("how", ["dead", "stalled"])
+def test_a_dead_bridge_ends_in_the_drives_quick_stop_not_a_jump(how: str) -> None:
+    """The bridge dies (its set-point thread ends), or only the set-point thread stalls
+    (blocked in a bus call) while the process lives: on a bus with cyclic axes that
+    thread sends the heartbeat too, so either way the drives' consumers react."""
     engine = build_engine(table(heartbeat_ms=20))  # the drives trip 60 ms after the last one
+    release = threading.Event()
     try:
         backend = engine.backends[0]
         for n in NODES:  # the drives' own limits (a CSP drive follows at 60C5h)
@@ -208,10 +213,11 @@ def test_a_dead_bridge_ends_in_the_drives_quick_stop_not_a_jump() -> None:
         start = sampler.now()
         assert ask(engine, "1S90=1")[0] is Status.ACK
         wait_until(lambda: sampler.now()[1] - start[1] > 15 * FACTOR, 30, "never got going")
-        # The bridge dies: no set-point, no heartbeat from now on (no clean release).
-        backend.cyclic.kill()
-        task, backend.heartbeat._task = backend.heartbeat._task, None
-        task.stop()
+        # No set-point, no heartbeat from now on (no clean release).
+        if how == "dead":
+            backend.cyclic.kill()
+        else:
+            backend.cyclic.transport.write_targets = lambda targets: release.wait(30)
         killed = sampler.now()
         wait_until(lambda: sampler.now()[3] is not State.OPERATION_ENABLED, 10,
                    "the heartbeat consumer never reacted")
@@ -227,6 +233,7 @@ def test_a_dead_bridge_ends_in_the_drives_quick_stop_not_a_jump() -> None:
         assert seen[-1][1] - killed[1] > 0  # it went on a little, braking
         assert not backend.simulator.drives[2].drive.unsafe_stops
     finally:
+        release.set()
         engine.close()
 
 

@@ -236,7 +236,9 @@ class CanopenBackend:
         The bridge serves this bus from now on: its heartbeat starts (``tcp-bridge check``
         never attaches, so it sends nothing)."""
         if self.heartbeat is not None:
-            self.heartbeat.start()
+            # With cyclic axes the set-point thread sends the heartbeat itself: a stalled
+            # thread then stops it, and the drives react (tcp_bridge.motion.cyclic).
+            self.heartbeat.start(driver=self.cyclic)
         if self.cyclic is not None:
             self.cyclic.begin()
         if self.pdo is not None:
@@ -245,8 +247,12 @@ class CanopenBackend:
     def close(self) -> None:
         """Called after the bus worker stopped: the drives' heartbeat consumers are
         switched off before the heartbeat stops (a clean shutdown trips nothing)."""
+        if self.cyclic is not None:
+            self.cyclic.finish_runs()  # cyclic moves ramp down while the heartbeat goes on
         if self.heartbeat is not None:
             self.heartbeat.stop(self.nodes.values())
+        if self.cyclic is not None:
+            self.cyclic.kill()
         try:
             self.network.disconnect()
         except Exception:  # already gone (adapter unplugged): nothing left to release

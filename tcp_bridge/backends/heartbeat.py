@@ -27,6 +27,8 @@ numbered from 1.
 
 What a heartbeat proves is that the bridge's process runs, not that it
 serves: a bridge that hangs with its process alive keeps the drives running.
+On a bus with cyclic axes the set-point thread sends it (``start(driver=...)``),
+so that a stalled set-point stream also stops the heartbeat.
 """
 from __future__ import annotations
 
@@ -102,22 +104,36 @@ class HeartbeatProducer:
         self.network = network
         self.settings = settings
         self._task: Any = None
+        self._driven = False  # sent by a bus thread's add_beat (cyclic axes) instead
+        self._stopped = False
 
     @property
     def running(self) -> bool:
-        return self._task is not None
+        return self._task is not None or (self._driven and not self._stopped)
 
     def supervision(self, node_id: int) -> Supervision:
         return Supervision(self.settings, node_id)
 
-    def start(self) -> None:
-        if self._task is not None:
+    def start(self, driver: Any = None) -> None:
+        """Heartbeat from now on: python-can's periodic task, or, with ``driver`` (the
+        bus's :class:`~tcp_bridge.motion.cyclic.CyclicSender`), that thread's own beat,
+        so that a set-point thread that stalls stops the heartbeat as well."""
+        if self._task is not None or self._driven:
             return
         s = self.settings
-        self._task = self.network.send_periodic(0x700 + s.producer_id, bytes([OPERATIONAL]),
-                                                s.period_ms / 1000.0)
+        if driver is not None:
+            self._driven = True
+            driver.add_beat(s.period_ms / 1000.0, self.beat)
+        else:
+            self._task = self.network.send_periodic(0x700 + s.producer_id,
+                                                    bytes([OPERATIONAL]), s.period_ms / 1000.0)
         log.info("bus %s: heartbeat of node %d every %d ms", self.bus, s.producer_id,
                  s.period_ms)
+
+    def beat(self) -> None:
+        """One heartbeat frame (CiA 301 7.2.8.3.2.2), unless stopped."""
+        if not self._stopped:
+            self.network.send_message(0x700 + self.settings.producer_id, bytes([OPERATIONAL]))
 
     def stop(self, nodes: Iterable[Any]) -> None:
         """Clean shutdown: switch off every consumer the bridge set, then stop the heartbeat."""
@@ -131,6 +147,7 @@ class HeartbeatProducer:
             except DeviceFailure as exc:
                 log.warning("%s: its heartbeat consumer could not be switched off (%s): it "
                             "reacts (6007h) when the heartbeat stops now", port.name, exc)
+        self._stopped = True
         task, self._task = self._task, None
         if task is not None:
             try:

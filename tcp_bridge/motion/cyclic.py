@@ -28,11 +28,12 @@ The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
   the heartbeat consumer (issue 23): a bus with cyclic axes must have
   ``heartbeat_ms`` (ConfigError otherwise), so a bridge that dies stops
   sending set-points *and* heartbeats, and each drive quick-stops (6007h)
-  from the last set-point it holds. The heartbeat is python-can's own
-  periodic task, so it proves the process runs, not that this thread does:
-  **chosen** guard, :meth:`CyclicSender.alive` is logged when the thread
-  died with runs active. A drive's own CSP watchdog (e.g. a sync or PDO
-  timeout) is drive specific and not set up by the bridge.
+  from the last set-point it holds. On such a bus this thread sends the
+  heartbeat itself (:meth:`CyclicSender.add_beat`), not python-can's periodic
+  task: a set-point thread that stalls (blocked in a bus call) or ends stops
+  the heartbeat too, so the drives react even while the process lives. A
+  drive's own CSP watchdog (e.g. a sync or PDO timeout) is drive specific and
+  not set up by the bridge.
 
 Timing: the thread keeps an absolute schedule (``next += cycle``); a cycle that
 comes late samples the profile at the real time, so a late set-point is the
@@ -95,6 +96,33 @@ class CyclicSender:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread: Optional[threading.Thread] = None
+        self._beats: List[List[Any]] = []  # [period, send, next due]: the bus's heartbeat
+
+    def add_beat(self, period_s: float, send: Callable[[], None]) -> None:
+        """Send ``send()`` every ``period_s`` from this thread (the bridge's heartbeat on a
+        bus with cyclic axes): a stalled or dead set-point thread then stops the
+        heartbeat too, and every drive reacts (6007h), not only when the process dies."""
+        with self._lock:
+            self._beats.append([period_s, send, self.clock()])
+        self.begin()
+        self._wake.set()
+
+    def _beat(self) -> float:
+        """Send the heartbeats that are due; seconds until the next one (inf: none)."""
+        now = self.clock()
+        with self._lock:
+            beats = list(self._beats)
+        soonest = float("inf")
+        for beat in beats:
+            period, send, due = beat
+            if now >= due:
+                try:
+                    send()
+                except Exception as exc:  # a bus error: the next cycle tries again
+                    log.warning("bus %s: heartbeat not sent (%s)", self.bus, exc)
+                beat[2] = due + period if due + period > now else now + period
+            soonest = min(soonest, beat[2] - now)
+        return soonest
 
     # -- the thread -------------------------------------------------------------------
 
@@ -106,13 +134,18 @@ class CyclicSender:
 
     def close(self) -> None:
         """Clean shutdown: the runs are stopped on their ramps first (bounded wait)."""
+        self.finish_runs()
+        self.kill()
+
+    def finish_runs(self) -> None:
+        """Every run ramps down on its line and ends (bounded wait); the thread, and
+        the heartbeat it sends, go on until :meth:`kill`."""
         with self._lock:
             runs = list(self._runs)
         for run in runs:
             self.stop(run.nodes)
         for run in runs:
             run.ended.wait(min(10.0, max(0.0, run.line.end_time - self.clock()) + 1.0))
-        self.kill()
 
     def kill(self) -> None:
         """End the thread at once, nothing more sent (tests: a dead bridge)."""
@@ -127,8 +160,10 @@ class CyclicSender:
     def _loop(self) -> None:
         next_at = self.clock()
         while not self._stop.is_set():
+            beat_in = self._beat()
             if not self._cycle():
-                self._wake.wait(1.0)  # idle: nothing to send until a run starts
+                # Idle: nothing to send until a run starts, or the next heartbeat.
+                self._wake.wait(min(1.0, max(0.0, beat_in)))
                 self._wake.clear()
                 next_at = self.clock()
                 continue
