@@ -64,6 +64,7 @@ class FakeSlave:
         self.present = True
         self.ca_used = False
         self.recovered = 0
+        self.resets = 0  # requests of INIT (the bridge's "NMT reset")
         self.od: Dict[Tuple[int, int], bytes] = {
             (0x1000, 0): (0x00020192).to_bytes(4, "little"), (0x1008, 0): b"EPOS4",
             (0x1018, 1): self.man.to_bytes(4, "little"), (0x1018, 2): self.id.to_bytes(4, "little"),
@@ -127,7 +128,9 @@ class FakeSlave:
 
     def write_state(self) -> int:
         with self._master.inside():
-            if self.present and self.state in (OP_STATE, SAFEOP_STATE | STATE_ACK):
+            if self.present and self.state == INIT_STATE:
+                self.resets += 1
+            elif self.present and self.state in (OP_STATE, SAFEOP_STATE | STATE_ACK):
                 self.state, self.al_status = (OP_STATE if self.state == OP_STATE else SAFEOP_STATE), 0
             return 1
 
@@ -148,6 +151,75 @@ class FakeSlave:
     def drop_out(self) -> None:
         """The slave's watchdog tripped, as on a cable pulled and plugged again."""
         self.state, self.al_status = SAFEOP_STATE | STATE_ERROR, 0x001B
+
+
+class DriveSlave(FakeSlave):
+    """A slave with a CiA 402 drive behind it (tcp_bridge.backends.instant.FakeNode): its
+    mailbox is the drive's SDO server; in OP each changed output object is written to
+    the drive, and the inputs are the drive's statusword and position.
+    RxPDO 1600h: 6040h 6060h 607Ah 60FFh; TxPDO 1A00h: 6041h 6064h 6061h."""
+
+    RX = ((0x6040, 16), (0x6060, 8), (0x607A, 32), (0x60FF, 32))
+    TX = ((0x6041, 16), (0x6064, 32), (0x6061, 8))
+
+    def __init__(self, master: "FakeMaster", position: int) -> None:
+        from tcp_bridge.backends.instant import FakeNode
+
+        super().__init__(master, position)
+        self.drive = FakeNode(position)
+        self.drive.values[(0x1000, 0)] = 0x00020192
+        self.drive.values[(0x1008, 0)] = 0
+        for n, (index, bits) in enumerate(self.RX, start=1):
+            self.od[(0x1600, n)] = mapping(index, 0, bits).to_bytes(4, "little")
+        for n, (index, bits) in enumerate(self.TX, start=1):
+            self.od[(0x1A00, n)] = mapping(index, 0, bits).to_bytes(4, "little")
+        self.od[(0x1600, 0)], self.od[(0x1A00, 0)] = bytes([len(self.RX)]), bytes([len(self.TX)])
+        self._output = bytearray(11)
+        self._applied = bytes(11)
+
+    def _map(self, key: Tuple[int, int]) -> bool:
+        return key[0] in (0x1C12, 0x1C13, 0x1600, 0x1A00) or key in ((0x1018, 1), (0x1018, 2))
+
+    def sdo_read(self, index: int, subindex: int, size: int = 0, ca: bool = False) -> bytes:
+        if self._map((index, subindex)):
+            return super().sdo_read(index, subindex, size, ca)
+        with self._master.inside():
+            self.ca_used |= ca
+            return self._drive_sdo(lambda: self.drive.upload(index, subindex))
+
+    def sdo_write(self, index: int, subindex: int, data: bytes, ca: bool = False) -> None:
+        with self._master.inside():
+            self.ca_used |= ca
+            self._drive_sdo(lambda: self.drive.download(index, subindex, bytes(data)))
+
+    def _drive_sdo(self, transfer: Any) -> Any:
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        if not self.present:
+            raise WkcError("no answer", 0)
+        try:
+            return transfer()
+        except SdoAbortedError as exc:
+            raise SdoError(self.position, 0, 0, exc.code, str(exc)) from None
+
+    @property
+    def input(self) -> bytes:
+        return b"".join(self.drive.upload(index, 0) for index, _ in self.TX)
+
+    def exchange(self) -> int:
+        if not self.present:
+            return 0
+        if self.state != OP_STATE:
+            return 0
+        out, offset = bytes(self._output), 0
+        for index, bits in self.RX:
+            size = bits // 8
+            if out[offset:offset + size] != self._applied[offset:offset + size]:
+                self.drive.download(index, 0, out[offset:offset + size])
+            offset += size
+        self._applied = out
+        self.received.append(out)
+        return 3
 
 
 class FakeMaster:
@@ -184,8 +256,10 @@ class FakeMaster:
         if self.fail_open:
             raise ConnectionError(f"could not open interface {ifname}")
 
+    slave_class: Any = FakeSlave
+
     def config_init(self) -> int:
-        self.slaves = [FakeSlave(self, p) for p in range(1, self.count + 1)]
+        self.slaves = [self.slave_class(self, p) for p in range(1, self.count + 1)]
         for s in self.slaves:
             s.state = PREOP_STATE
         return len(self.slaves) or -1
@@ -235,10 +309,11 @@ class FakeSoem:
 
     SdoError, WkcError, MailboxError, PacketError = SdoError, WkcError, MailboxError, PacketError
 
-    def __init__(self, count: int = 2, fail_open: bool = False) -> None:
+    def __init__(self, count: int = 2, fail_open: bool = False, drives: bool = False) -> None:
         class Master(FakeMaster):
             pass
         Master.count, Master.fail_open = count, fail_open
+        Master.slave_class = DriveSlave if drives else FakeSlave
         Master.instances = []
         self.Master = Master
         self.masters = Master.instances

@@ -8,6 +8,7 @@ from types import MappingProxyType
 from typing import Any, Dict, Iterator
 
 import pytest
+from canopen.nmt import NmtError
 from canopen.sdo.exceptions import SdoAbortedError
 
 from tcp_bridge.backends import factory_for
@@ -212,12 +213,17 @@ def test_no_frame_back_is_a_silent_link(backend: EthercatBackend, soem: FakeSoem
     backend.probe()
 
 
-def test_nmt_reset_is_refused_and_start_is_harmless(backend: EthercatBackend) -> None:
+def test_nmt_reset_is_init_and_back_to_op_other_nmt_states_are_refused(
+        backend: EthercatBackend, soem: FakeSoem) -> None:
+    slave = soem.masters[0].slaves[0]
     port = SdoPort(backend.node(1), name="axis 1")
-    with pytest.raises(DeviceFailure, match="no NMT reset"):
-        port.nmt_reset()
-    port.nmt_start()
+    port.nmt_reset()
+    assert slave.resets == 1 and 1 in backend.cycle.lost  # silent while it comes back
+    wait_until(lambda: 1 not in backend.cycle.lost and slave.state == OP_STATE)
     assert backend.node(1).nmt.state == "OPERATIONAL"
+    port.nmt_start()
+    with pytest.raises(NmtError, match="no NMT stopped"):
+        backend.node(1).nmt.state = "STOPPED"
 
 
 # -- threads ---------------------------------------------------------------------------------

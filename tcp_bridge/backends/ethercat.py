@@ -53,9 +53,15 @@ into the output image without waiting (it goes out with the next cycle);
 :meth:`EthercatBackend.add_cycle_hook` calls a function at the start of every
 cycle, on the cycle thread, before the outputs are sent.
 
-**Chosen**: ``nmt.state = "OPERATIONAL"`` requests OP of the slave (the
-nearest EtherCAT has to NMT start); ``"RESET"`` is refused (NmtError): CoE has
-no NMT reset node and a state change INIT->OP would not reset the drive.
+**Chosen** (CoE has no NMT; ETG.1000.6 6.4 has the EtherCAT state machine
+instead): ``nmt.state = "OPERATIONAL"`` makes the next cycle look at the
+slave's state and ask for OP if needed; ``"RESET"`` (S16, and an enable after
+a power cycle, :mod:`tcp_bridge.motion`) takes the slave to INIT, and the
+recovery brings it back through PREOP and SAFEOP (its PDO configuration
+written again) to OP; meanwhile it is a silent node, as a CANopen node is
+while it boots. The drive's application is not reset by that: after a real
+power cycle its RAM values are the defaults anyway, and the bridge writes its
+parameters back at the next enable. Other NMT states are refused (NmtError).
 """
 from __future__ import annotations
 

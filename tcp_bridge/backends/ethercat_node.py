@@ -14,6 +14,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from ..bus.sdo import object_type
 from ..errors import BusUnavailable
 from . import ethercat_pdo as pdo
+from .ethercat_cycle import INIT
 
 
 class SlaveUnreachable(SdoCommunicationError):  # type: ignore[misc]
@@ -143,11 +144,19 @@ class _Nmt:
 
     @state.setter
     def state(self, value: str) -> None:
-        if value != "OPERATIONAL":
-            raise NmtError(f"EtherCAT has no NMT {value.lower()}: slave {self._node.id} "
-                           "keeps running (power-cycle the drive to reset it)")
-        cycle = self._node._bus.cycle
-        slave = cycle.slaves.get(self._node.id)
-        if slave is not None:
+        node, cycle = self._node, self._node._bus.cycle
+        slave = cycle.slaves.get(node.id)
+        if value == "OPERATIONAL":
             with cycle.lock:
-                cycle._check = True
+                cycle._check = True  # the next cycle looks at it, and asks for OP if needed
+            return
+        if not value.startswith("RESET"):
+            raise NmtError(f"EtherCAT has no NMT {value.lower()} (slave {node.id})")
+        if slave is None:
+            raise SlaveUnreachable(f"no slave at position {node.id}")
+        # Chosen (module docstring of ethercat): INIT and back to OP by the recovery.
+        with cycle.lock:
+            slave.state = INIT
+            slave.write_state()
+            cycle.lost[node.id] = f"slave {node.id} was reset by the bridge (INIT, back to OP)"
+            cycle._check = True
