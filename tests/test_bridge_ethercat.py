@@ -257,3 +257,27 @@ def test_close_stops_the_cycle_and_closes_the_master(soem: FakeSoem) -> None:
     assert soem.masters[0].closed
     count = b.cycle.stats.cycles
     assert not b.cycle.wait_cycles(1, 0.05) and b.cycle.stats.cycles == count
+
+
+# -- tcp-bridge check ------------------------------------------------------------------------
+
+
+def test_check_finds_every_slave_by_position_with_its_identity_and_writes_nothing(
+        soem: FakeSoem) -> None:
+    from tcp_bridge.check import check
+
+    table = AxisTable.from_mapping({
+        "bus": {"ethercat": {"backend": "ethercat", "interface": "ecat0"}},
+        "axis": [{"addr": n, "bus_offset": 1000000, "node_id": n} for n in (1, 2, 3)]})
+
+    def opener(bus: BusConfig, axes: Any) -> EthercatBackend:
+        return EthercatBackend(bus, axes, soem=soem, read_only=True)
+
+    found: list = []
+    reports = check(table, opener=opener, found=found)
+    assert found == [f"bus ethercat: slave {n}: EPOS4 vendor 0x000000FB product 0x69500000 "
+                     "revision 0x01700000 PREOP" for n in (1, 2)]
+    assert [r.reading.vendor_id for r in reports[:2]] == [0xFB, 0xFB]
+    assert reports[2].reading.silent and "no slave at position 3" in reports[2].reading.silent
+    master = soem.masters[0]
+    assert master.closed and all(s.state != OP_STATE and not s.received for s in master.slaves)

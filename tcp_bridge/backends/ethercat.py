@@ -133,9 +133,14 @@ def _pysoem() -> Any:
 class EthercatBackend:
     """One SOEM master on one network card; nodes by slave position."""
 
+    # ``tcp-bridge check`` opens it read_only: slaves found and left in PREOP, where CoE
+    # SDO works; no process data, no OP, so nothing is written to the drives.
+    READ_ONLY_OPEN = True
+
     def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = (), *,
-                 soem: Optional[Any] = None) -> None:
+                 soem: Optional[Any] = None, read_only: bool = False) -> None:
         self.name = bus.name
+        self.read_only = read_only
         opts = parse_options(bus)
         self.interface: str = opts["interface"]
         self.soem = soem if soem is not None else _pysoem()
@@ -167,10 +172,16 @@ class EthercatBackend:
         for position, slave in slaves.items():
             log.info("bus %s: slave %d %s vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.name, position, slave.name, slave.man, slave.id, slave.rev)
+        self.layouts: Dict[int, Optional[pdo.Layout]] = {}
+        if self.read_only:  # every object by SDO, in PREOP
+            master.read_state()
+            loop = CycleLoop(master, {}, opts["cycle_ms"] / 1000.0,
+                             al_text=self.soem.al_status_code_to_string)
+            loop.slaves = slaves
+            return loop
         master.config_map()  # the slaves are in SAFEOP now
         if master.state_check(SAFEOP, 50_000) != SAFEOP:
             master.read_state()
-        self.layouts: Dict[int, Optional[pdo.Layout]] = {}
         for position, slave in slaves.items():
             try:
                 slave.set_watchdog("processdata", float(opts["watchdog_ms"]))
