@@ -119,6 +119,10 @@ class CycleLoop:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+            s = self.stats
+            log.info("ethercat: %d cycles, %d with a short working counter, %d without a "
+                     "frame, %d overruns, latest start %.2f ms after its deadline", s.cycles,
+                     s.wkc_errors, s.no_frame, s.overruns, s.max_late_ms)
 
     def _run(self) -> None:
         due = self._clock()
@@ -127,6 +131,10 @@ class CycleLoop:
             if late > self.period:
                 self.stats.overruns += 1
                 due = self._clock()
+            if late > self.period / 2 and self.stats.max_late_ms <= self.period * 500.0:
+                log.warning("ethercat: a cycle started %.1f ms late (cycle %.1f ms): the host "
+                            "is loaded, or cycle_ms is too short for it", late * 1000.0,
+                            self.period * 1000.0)
             self.stats.max_late_ms = max(self.stats.max_late_ms, late * 1000.0)
             try:
                 self.step()
