@@ -27,6 +27,10 @@ from tests.bridge_sim import TIMING
 from tests.helpers import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
+# Where the simulator runs from: this tree, or (ECAT_SIM_ROOT) another checkout of the
+# project whose simulator has --ethercat, e.g. while the two are on separate branches.
+SIM_ROOT = Path(os.environ.get("ECAT_SIM_ROOT") or ROOT)
+SIM_ENV = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
 
 
 def _why_not() -> str:
@@ -37,7 +41,8 @@ def _why_not() -> str:
     if importlib.util.find_spec("pysoem") is None:
         return "needs pysoem (pip install 'epos-link[ethercat]')"
     helped = subprocess.run([sys.executable, "-m", "epos_link.cli", "sim", "--help"],
-                            capture_output=True, text=True, cwd=ROOT, timeout=60)
+                            capture_output=True, text=True, cwd=SIM_ROOT, env=SIM_ENV,
+                            timeout=60)
     if "--ethercat" not in helped.stdout:
         return "the simulator has no EtherCAT slave yet (epos-link sim --ethercat)"
     return ""
@@ -71,7 +76,8 @@ def simulated(veth: Tuple[str, str], tmp_path_factory: pytest.TempPathFactory
               ) -> Iterator[Path]:
     """The simulated slave(s) on the veth's far end; the axis table of the near end."""
     proc = subprocess.Popen([sys.executable, "-m", "epos_link.cli", "sim", "--ethercat", veth[1]],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                            cwd=SIM_ROOT, env=SIM_ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
     table = tmp_path_factory.mktemp("ecat") / "axes.toml"
     table.write_text(
         "[bus.ethercat]\nbackend = \"ethercat\"\n"
