@@ -28,7 +28,9 @@ axis of the bus is "device silent", with one line naming the device's URL and
 what to check (port, baud rate, power), and its nodes are not asked: a node is
 called absent only when the device in front of it answers.
 
-After the table, one line per bus says what stops its axes if the host (the
+After the table, a bus that finds its devices itself (``ethercat``) lists each
+slave by position (the axis's ``node_id``) with its identity from the SII and its
+EtherCAT state; then one line per bus says what stops its axes if the host (the
 bridge) dies (:func:`liveness_notes`; docs/hardware.md, "When the host dies"):
 the drives' heartbeat consumer on a ``canopen`` bus with ``heartbeat_ms``;
 nothing from the host otherwise, nor through an EPOS4 gateway, which forwards
@@ -118,18 +120,21 @@ def _why(exc: DeviceFailure) -> str:
     return str(exc).split(" failed: ", 1)[-1]
 
 
-def check(axis_table: AxisTable, *, opener: Optional[Opener] = None) -> List[AxisReport]:
-    """One report per axis of ``axis_table``, in AxAddr order. Reads only (module docstring)."""
+def check(axis_table: AxisTable, *, opener: Optional[Opener] = None,
+          found: Optional[List[str]] = None) -> List[AxisReport]:
+    """One report per axis of ``axis_table``, in AxAddr order. Reads only (module docstring).
+
+    ``found`` receives one line per device a bus discovered by itself (an ``ethercat``
+    bus: each slave by position with its identity), for the lines after the table."""
     if opener is None:
-        from .backends import open_backend
-        opener = open_backend
+        opener = _open_read_only
     params = ParameterStore(axis_table)  # the state file's inversion/offset, read only
     reports: Dict[int, AxisReport] = {}
     try:
         for name, bus in axis_table.buses.items():
             axes = [a for a in axis_table.axes.values() if a.bus == name and a.has_node]
             if axes:
-                reports.update(_check_bus(bus, axes, params, opener))
+                reports.update(_check_bus(bus, axes, params, opener, found))
         for addr, axis in axis_table.axes.items():
             if not axis.has_node:
                 reports[addr] = no_drive(axis)
@@ -178,13 +183,27 @@ def liveness_notes(axis_table: AxisTable) -> List[str]:
     return notes
 
 
+def _open_read_only(bus: BusConfig, axes: List[AxisConfig]) -> Any:
+    """The bus's backend, opened read-only if its factory offers that (``ethercat``:
+    slaves left in PREOP, no process data: nothing written to the drives)."""
+    from .backends import factory_for
+
+    factory = factory_for(bus.backend)
+    if getattr(factory, "READ_ONLY_OPEN", False):
+        return factory(bus, list(axes), read_only=True)
+    return factory(bus, list(axes))
+
+
 def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
-               opener: Opener) -> Dict[int, AxisReport]:
+               opener: Opener, found: Optional[List[str]] = None) -> Dict[int, AxisReport]:
     try:
         backend = opener(bus, axes)
     except (ConfigError, OSError) as exc:
         return {a.addr: no_bus(a, str(exc)) for a in axes}
     try:
+        inventory = getattr(backend, "inventory", None)
+        if callable(inventory) and found is not None:
+            found.extend(f"bus {bus.name}: {line}" for line in inventory())
         silent = _device_silence(bus, backend)
         if silent is not None:
             return {a.addr: device_silent(a, silent) for a in axes}
@@ -249,7 +268,8 @@ def run(args: argparse.Namespace, prog: str = "tcp-bridge check") -> int:
         logging.getLogger("canopen").setLevel(logging.CRITICAL)
     try:
         axes = simulated_table(args.axes) if args.simulate else AxisTable.load(args.config)
-        reports = check(axes)
+        found: List[str] = []
+        reports = check(axes, found=found)
     except (ConfigError, BridgeError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
@@ -258,7 +278,7 @@ def run(args: argparse.Namespace, prog: str = "tcp-bridge check") -> int:
             print(as_json(report))
     else:
         print(format_table(reports))
-    for note in liveness_notes(axes):
+    for note in [*found, *liveness_notes(axes)]:
         print(note, file=sys.stderr if args.json else sys.stdout)
     return 0 if all(r.ok for r in reports) else 1
 

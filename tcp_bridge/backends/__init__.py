@@ -19,6 +19,8 @@ epos       an EPOS4 reached by an ``epos_link`` URL, its CAN gateway for the
 sim        the embedded simulated EPOS4 and drives behind it (over the epos path,
            or on its CAN bus through canopen)
 instant    in-process fake CiA 402 drives that answer at once (tests, bench)
+ethercat   EtherCAT slaves with CoE (EPOS4 EtherCAT) on a network card, through
+           pysoem (optional: ``pip install 'epos-link[ethercat]'``)
 =========  ==================================================================
 """
 from __future__ import annotations
@@ -37,6 +39,7 @@ BACKENDS: Dict[str, str] = {
     "epos": "tcp_bridge.backends.epos:EposBackend",
     "sim": "tcp_bridge.backends.sim:open_sim",
     "instant": "tcp_bridge.backends.instant:InstantBackend",
+    "ethercat": "tcp_bridge.backends.ethercat:EthercatBackend",
 }
 ENTRY_POINT_GROUP = "tcp_bridge.backends"
 

@@ -30,6 +30,7 @@ def _number(value: Any) -> bool:
 
 
 SECONDS: Final[Check] = (lambda v: _number(v) and v > 0, "a positive number of seconds")
+MILLISECONDS: Final[Check] = (lambda v: _number(v) and v > 0, "a positive number of milliseconds")
 RATE: Final[Check] = (lambda v: _integer(v) and v > 0, "a positive integer (bit/s)")
 COUNT: Final[Check] = (lambda v: _integer(v) and v >= 0, "an integer, 0 or more")
 NODE: Final[Check] = (lambda v: _integer(v) and 1 <= v <= 127, "a node id 1..127 (CiA 301)")
@@ -48,6 +49,9 @@ OPTION_TYPES: Final[Mapping[str, Mapping[str, Check]]] = {
     "sim": {"link": TEXT, "baud": RATE, "timeout": SECONDS, "gateway_timeout": SECONDS,
             "gateway_node_id": NODE, "sdo_timeout": SECONDS, "sdo_retries": COUNT,
             "eds": TEXT},
+    # tcp_bridge.backends.ethercat checks the ranges and how the options relate.
+    "ethercat": {"interface": TEXT, "cycle_ms": MILLISECONDS, "watchdog_ms": MILLISECONDS,
+                 "sdo_timeout": SECONDS, "op_timeout": SECONDS},
 }
 
 

@@ -1,0 +1,300 @@
+"""``ethercat``: EtherCAT slaves with CoE (an EPOS4 EtherCAT) through pysoem (SOEM).
+
+Bus options (``[bus.ethercat]``, bus offset 1000000 of PSI spec 3.3; an axis's
+``node_id`` is the slave's position along the bus, 1 = the first after the card)::
+
+    backend = "ethercat"
+    interface = "eth1"     # the network card the slaves hang on (ip link)
+    cycle_ms = 4           # the process-data cycle, 1..100 ms
+    watchdog_ms = 100      # the slaves' process-data (SM) watchdog
+    sdo_timeout = 0.02     # seconds per CoE SDO exchange (below watchdog_ms / 2)
+    op_timeout = 3.0       # seconds for every slave to reach OP at opening
+
+Opening (ETG.1000.6 6.4, the EtherCAT state machine): the card is opened
+(raw Ethernet frames: root or CAP_NET_RAW), ``config_init()`` finds the slaves
+and reads their identity from the SII (vendor, product code, revision: the
+1018h values), ``config_map()`` builds the I/O map from each slave's PDO
+assignment (the slaves are SAFEOP), the slaves' process-data watchdog is
+set, each slave's PDO layout is read (:mod:`.ethercat_pdo`) and its outputs
+are seeded with the values the drive has now, the cycle starts
+(:mod:`.ethercat_cycle`) and OP is requested. A slave that does not reach OP
+is logged with its AL status code and is *lost* (a silent node) until the
+recovery brings it back.
+
+The node interface is canopen's, as on every backend (``node.sdo.upload/download``,
+``node.nmt``), so the command layer and the motion rules are the CAN ones:
+
+* an object mapped into the slave's **outputs** (RxPDO: controlword 6040h,
+  target position 607Ah, ... whatever the slave maps) is written into the
+  output image, not by SDO: the slave takes it from the process data and would
+  overwrite an SDO write with the next cycle. The download returns once two
+  cycles have carried it (the one in flight may have left before the write).
+  Its upload answers the image.
+* an object mapped into the **inputs** (TxPDO: statusword 6041h, position
+  6064h, ...) is read from the first cycle completed after the request.
+* every other object goes by CoE SDO, expedited or segmented as SOEM chooses
+  by size, always **without Complete Access** (``ca=False``): some slaves
+  mishandle it (ETG.1000.6 5.6.2.1.1 leaves it optional).
+
+Errors, as on the other backends (:mod:`tcp_bridge.bus.sdo` classifies them)::
+
+    canopen SdoAbortedError(code)       the slave's SDO abort code (pysoem SdoError),
+                                        answered NAK with the code and its text
+    SlaveUnreachable                    (a canopen SdoCommunicationError) the slave is
+                                        lost, not in OP (with its AL status code and
+                                        text), or its mailbox did not answer: a silent node
+    LinkDown (BusUnavailable, OSError)  no frame comes back: the bus's device is silent
+    NmtError                            NMT reset node asked of a slave (no NMT here)
+
+Cyclic set-points (for internal axes in CSP, the bridge computing the profile):
+:meth:`EthercatNode.pdo_write` / :meth:`EthercatNode.cyclic_target` put a value
+into the output image without waiting (it goes out with the next cycle);
+:meth:`EthercatNode.pdo_read` reads the newest input (or output) value;
+:meth:`EthercatBackend.add_cycle_hook` calls a function at the start of every
+cycle, on the cycle thread, before the outputs are sent.
+
+**Chosen** (CoE has no NMT; ETG.1000.6 6.4 has the EtherCAT state machine
+instead): ``nmt.state = "OPERATIONAL"`` makes the next cycle look at the
+slave's state and ask for OP if needed; ``"RESET"`` (S16, and an enable after
+a power cycle, :mod:`tcp_bridge.motion`) takes the slave to INIT, and the
+recovery brings it back through PREOP and SAFEOP (its PDO configuration
+written again) to OP; meanwhile it is a silent node, as a CANopen node is
+while it boots. The drive's application is not reset by that: after a real
+power cycle its RAM values are the defaults anyway, and the bridge writes its
+parameters back at the next enable. Other NMT states are refused (NmtError).
+"""
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+from ..errors import BusUnavailable
+from ..tables.axes import AxisConfig, BusConfig, ConfigError
+from . import ethercat_pdo as pdo
+from .ethercat_cycle import INIT, OP, SAFEOP, CycleLoop, state_name
+from .ethercat_node import EthercatNode, LinkDown, SlaveUnreachable
+
+log = logging.getLogger("tcp_bridge.backends.ethercat")
+OPTIONS = {"interface": None, "cycle_ms": 4, "watchdog_ms": 100, "sdo_timeout": 0.02,
+           "op_timeout": 3.0}
+CAP_HINT = ("raw Ethernet needs root or CAP_NET_RAW: sudo setcap cap_net_raw,cap_net_admin+ep "
+            "on the Python interpreter (docs/hardware.md, \"EtherCAT\")")
+
+
+def _number(bus: str, key: str, value: Any, low: float, high: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+        raise ConfigError(f"bus {bus}: {key} must be a number {low:g}..{high:g}, not {value!r}")
+    return float(value)
+
+
+def parse_options(bus: BusConfig) -> Dict[str, Any]:
+    """The bus's options checked, defaults filled in; ConfigError names the key."""
+    unknown = sorted(set(bus.options) - set(OPTIONS) - {"backend"})
+    if unknown:
+        raise ConfigError(f"bus {bus.name}: unknown ethercat options {unknown}; known: "
+                          f"{', '.join(OPTIONS)}")
+    opts = {**OPTIONS, **bus.options}
+    if not isinstance(opts["interface"], str) or not opts["interface"]:
+        raise ConfigError(f"bus {bus.name}: the ethercat backend needs interface = \"eth1\" "
+                          "(the network card of the slaves)")
+    opts["cycle_ms"] = _number(bus.name, "cycle_ms", opts["cycle_ms"], 1, 100)
+    opts["watchdog_ms"] = _number(bus.name, "watchdog_ms", opts["watchdog_ms"], 1, 6000)
+    opts["sdo_timeout"] = _number(bus.name, "sdo_timeout", opts["sdo_timeout"], 0.001, 10)
+    opts["op_timeout"] = _number(bus.name, "op_timeout", opts["op_timeout"], 0.01, 60)
+    if opts["watchdog_ms"] < 3 * opts["cycle_ms"]:
+        raise ConfigError(f"bus {bus.name}: watchdog_ms ({opts['watchdog_ms']:g}) must be at "
+                          f"least 3 cycles ({3 * opts['cycle_ms']:g} ms)")
+    if opts["sdo_timeout"] * 1000 > opts["watchdog_ms"] / 2:
+        # ethercat_cycle rule 1: a transfer holds the cycle; it must not trip the watchdog.
+        raise ConfigError(f"bus {bus.name}: sdo_timeout ({opts['sdo_timeout']:g} s) must be at "
+                          f"most half of watchdog_ms ({opts['watchdog_ms']:g} ms)")
+    return opts
+
+
+def _open_reason(interface: str) -> str:
+    """Why a raw socket on ``interface`` could not be opened, as far as Linux tells."""
+    if os.path.isdir("/sys/class/net") and not os.path.exists(f"/sys/class/net/{interface}"):
+        return f"no network interface {interface} (ip link)"
+    if hasattr(os, "geteuid") and os.geteuid() != 0:
+        return CAP_HINT
+    return "pysoem could not open it (is it up? ip link set dev IFACE up)"
+
+
+def _pysoem() -> Any:
+    try:
+        import pysoem
+    except ImportError:
+        raise ConfigError("the ethercat backend needs pysoem: pip install "
+                          "'epos-link[ethercat]'") from None
+    return pysoem
+
+
+class EthercatBackend:
+    """One SOEM master on one network card; nodes by slave position."""
+
+    # ``tcp-bridge check`` opens it read_only: slaves found and left in PREOP, where CoE
+    # SDO works; no process data, no OP, so nothing is written to the drives.
+    READ_ONLY_OPEN = True
+
+    def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = (), *,
+                 soem: Optional[Any] = None, read_only: bool = False) -> None:
+        self.name = bus.name
+        self.read_only = read_only
+        opts = parse_options(bus)
+        self.interface: str = opts["interface"]
+        self.soem = soem if soem is not None else _pysoem()
+        self.sdo_timeout: float = opts["sdo_timeout"]
+        master = self.soem.Master()
+        try:
+            master.open(self.interface)
+        except (ConnectionError, OSError) as exc:
+            raise BusUnavailable(f"bus {bus.name}: cannot open {self.interface}: "
+                                 f"{_open_reason(self.interface)} ({exc})") from None
+        try:
+            self.cycle = self._configure(master, opts)
+        except BaseException:
+            master.close()
+            raise
+        self.nodes: Dict[int, EthercatNode] = {}
+        missing = [a.node_id for a in axes if a.node_id not in self.cycle.slaves]
+        if missing:
+            log.warning("bus %s: no slave at position %s (%d found): those axes are absent",
+                        self.name, ", ".join(map(str, missing)), len(self.cycle.slaves))
+
+    def _configure(self, master: Any, opts: Dict[str, Any]) -> CycleLoop:
+        found = int(master.config_init())
+        if found < 1:
+            raise BusUnavailable(f"bus {self.name}: no EtherCAT slave answers on {self.interface} "
+                                 "(cable, the slaves' power)")
+        master.sdo_read_timeout = master.sdo_write_timeout = int(self.sdo_timeout * 1e6)
+        slaves = {p: s for p, s in enumerate(master.slaves, start=1)}
+        for position, slave in slaves.items():
+            log.info("bus %s: slave %d %s vendor 0x%08X product 0x%08X revision 0x%08X",
+                     self.name, position, slave.name, slave.man, slave.id, slave.rev)
+        self.layouts: Dict[int, Optional[pdo.Layout]] = {}
+        if self.read_only:  # every object by SDO, in PREOP
+            master.read_state()
+            loop = CycleLoop(master, {}, opts["cycle_ms"] / 1000.0,
+                             al_text=self.soem.al_status_code_to_string)
+            loop.slaves = slaves
+            return loop
+        master.config_map()  # the slaves are in SAFEOP now
+        if master.state_check(SAFEOP, 50_000) != SAFEOP:
+            master.read_state()
+        for position, slave in slaves.items():
+            try:
+                slave.set_watchdog("processdata", float(opts["watchdog_ms"]))
+            except Exception as exc:  # pysoem marks it experimental: the default (100 ms) stays
+                log.warning("bus %s: slave %d: watchdog not set: %s", self.name, position, exc)
+            self.layouts[position] = self._layout(position, slave)
+        cycle = CycleLoop(master, slaves, opts["cycle_ms"] / 1000.0,
+                          al_text=self.soem.al_status_code_to_string)
+        for position, layout in self.layouts.items():
+            if layout is not None:
+                self._seed(cycle, slaves[position], cycle.outputs[position], layout)
+        cycle.start()
+        try:
+            self._to_op(master, cycle, opts["op_timeout"])
+        except BaseException:
+            cycle.stop()
+            raise
+        return cycle
+
+    def _layout(self, position: int, slave: Any) -> Optional[pdo.Layout]:
+        try:
+            layout = pdo.read_layout(lambda i, s: slave.sdo_read(i, s, ca=False))
+        except Exception as exc:
+            log.warning("bus %s: slave %d: PDO mapping unreadable (%s): every object by SDO",
+                        self.name, position, exc)
+            return None
+        problem = pdo.layout_problem(layout, len(bytes(slave.output)), len(bytes(slave.input)))
+        if problem:
+            log.warning("bus %s: slave %d: %s: every object by SDO", self.name, position, problem)
+            return None
+        return layout
+
+    def _seed(self, cycle: CycleLoop, slave: Any, image: bytearray, layout: pdo.Layout) -> None:
+        """Outputs start as the drive's current values (so OP changes neither its mode
+        of operation nor its controlword); an object that cannot be read starts as 0."""
+        for entry in layout.outputs.values():
+            try:
+                data = bytes(slave.sdo_read(entry.index, entry.subindex, ca=False))
+                pdo.put(image, entry, data[:entry.size].ljust(entry.size, b"\0"))
+            except Exception:
+                continue
+
+    def _to_op(self, master: Any, cycle: CycleLoop, timeout: float) -> None:
+        try:
+            self._request_op(master, cycle, timeout)
+        finally:
+            cycle.supervise = True
+
+    def _request_op(self, master: Any, cycle: CycleLoop, timeout: float) -> None:
+        with cycle.lock:
+            master.state = OP
+            master.write_state()
+        attempts = max(1, int(timeout / 0.05))
+        for _ in range(attempts):
+            with cycle.lock:
+                if master.state_check(OP, 1000) == OP:
+                    return
+            cycle.wait_cycles(1, 0.05)
+        with cycle.lock:
+            master.read_state()
+            for position in cycle.slaves:
+                if int(cycle.slaves[position].state) != OP and position not in cycle.lost:
+                    cycle.lost[position] = cycle.describe(position)
+                    log.warning("bus %s: %s: its axis is silent until it reaches OP",
+                                self.name, cycle.lost[position])
+            cycle._check = True  # the recovery asks again
+
+    # -- the Backend interface ----------------------------------------------------------
+
+    def node(self, node_id: int) -> EthercatNode:
+        node = self.nodes.get(node_id)
+        if node is None:
+            node = self.nodes[node_id] = EthercatNode(self, node_id)
+        return node
+
+    def add_cycle_hook(self, hook: Callable[[int], None]) -> None:
+        """``hook(cycle_number)`` at the start of every cycle (:class:`CycleLoop`)."""
+        self.cycle.add_hook(hook)
+
+    def remove_cycle_hook(self, hook: Callable[[int], None]) -> None:
+        self.cycle.remove_hook(hook)
+
+    @property
+    def cycle_s(self) -> float:
+        return self.cycle.period
+
+    def inventory(self) -> List[str]:
+        """One line per slave found: position, name, identity, state."""
+        lines = []
+        for position, slave in self.cycle.slaves.items():
+            lines.append(f"slave {position}: {slave.name} vendor 0x{int(slave.man):08X} product "
+                         f"0x{int(slave.id):08X} revision 0x{int(slave.rev):08X} "
+                         f"{state_name(int(slave.state))}")
+        return lines
+
+    def probe(self) -> None:
+        """Does any frame come back? (:mod:`tcp_bridge.bus.failfast`.)"""
+        if self.cycle.link_down:
+            raise LinkDown(f"no EtherCAT frame comes back on {self.interface}")
+
+    def describe_silence(self, why: str) -> str:
+        return (f"the EtherCAT slaves on {self.interface} do not answer ({why}): check the "
+                "cable from the card to the first slave and the slaves' power")
+
+    def close(self) -> None:
+        self.cycle.stop()
+        with self.cycle.lock:
+            try:
+                self.cycle.master.state = INIT  # the drives see the master leave
+                self.cycle.master.write_state()
+            except Exception:
+                pass
+            self.cycle.master.close()
+
+
+__all__ = ["EthercatBackend", "EthercatNode", "LinkDown", "SlaveUnreachable", "parse_options"]

@@ -1,0 +1,229 @@
+"""The process-data cycle of an ``ethercat`` bus, and the recovery of slaves that drop out.
+
+Rules:
+
+1. **One lock for SOEM.** pysoem's master and slave objects are not documented
+   as thread-safe, and SOEM shares one frame index stack and one I/O map
+   between process data and mailbox. So every call into pysoem (a cycle's
+   send/receive, an SDO transfer, a state change, a recovery) holds
+   :attr:`CycleLoop.lock`; each holds it for one bounded exchange only.
+   An SDO transfer therefore delays the next cycle by its length: the backend
+   refuses an ``sdo_timeout`` that is not well below the slaves' process-data
+   watchdog, so a slow transfer can never trip it.
+2. **The cycle** (:meth:`CycleLoop.step`, every ``cycle_ms`` on its own thread):
+   cycle hooks run (a CSP set-point generator writes its next target), the output
+   images are copied into the I/O map, ``send_processdata`` /
+   ``receive_processdata``, the input images are copied out, and the working
+   counter is compared with ``expected_wkc``. Deadlines are absolute (the
+   next cycle is due one period after the last one was due), so jitter does not
+   accumulate; a cycle that starts more than a period late is an *overrun*
+   and the schedule restarts from now rather than bursting to catch up.
+3. **Drop-out** (as SOEM's ``simple_test`` ``ecatcheck``): a short working
+   counter, or a slave seen out of OP, makes the loop read every slave's state
+   (AL status register, ETG.1000.6 6.4.1). A slave not in OP is *lost*: its
+   node answers every transfer at once with the AL status code and its text
+   (a silent node, as on CAN, :mod:`tcp_bridge.bus.health`). The recovery, on
+   the cycle thread between cycles, one step per check: SAFEOP+ERROR is
+   acknowledged, SAFEOP is asked for OP, a slave still present is
+   ``reconfig()``-ured, one that vanished is ``recover()``-ed when it is back.
+4. **The link**: when no frame came back for ``link_cycles`` cycles in a row
+   (``receive_processdata`` < 1: the cable, the card, every slave's power), the
+   bus's device is silent (:attr:`CycleLoop.link_down`).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional
+
+log = logging.getLogger("tcp_bridge.backends.ethercat")
+
+# pysoem state constants (SOEM ethercattype.h ec_state), repeated so the module
+# and its tests do not need pysoem itself.
+NONE, INIT, PREOP, BOOT, SAFEOP, OP = 0x00, 0x01, 0x02, 0x03, 0x04, 0x08
+ERROR = ACK = 0x10
+STATE_NAMES = {NONE: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP",
+               OP: "OP"}
+RECOVER_TIMEOUT_US = 2000  # SOEM EC_TIMEOUTRET: one exchange's wait
+
+
+def state_name(state: int) -> str:
+    base = STATE_NAMES.get(state & 0x0F, f"0x{state & 0x0F:02X}")
+    return base + ("+ERROR" if state & ERROR else "")
+
+
+@dataclass
+class CycleStats:
+    """What the cycle measured (docs/hardware.md, "EtherCAT"): counts since opening."""
+
+    cycles: int = 0
+    wkc_errors: int = 0  # cycles with a working counter below expected_wkc
+    no_frame: int = 0  # cycles with no frame back at all
+    overruns: int = 0  # cycles started more than a period late
+    max_late_ms: float = 0.0  # the latest start of a cycle after its deadline
+
+
+Hook = Callable[[int], None]
+
+
+class CycleLoop:
+    """The process data of one master; ``slaves`` are pysoem slaves by position (1-based)."""
+
+    def __init__(self, master: Any, slaves: Dict[int, Any], period: float, *,
+                 al_text: Callable[[int], str], link_cycles: int = 25,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.master = master
+        self.slaves = slaves
+        self.period = period
+        self.lock = threading.RLock()  # rule 1
+        self.fresh = threading.Condition(threading.Lock())  # notified after each cycle
+        self.stats = CycleStats()
+        self.outputs: Dict[int, bytearray] = {p: bytearray(bytes(s.output)) for p, s in slaves.items()}
+        self.inputs: Dict[int, bytes] = {p: bytes(s.input) for p, s in slaves.items()}
+        self.lost: Dict[int, str] = {}  # position -> why (AL status), rule 3
+        self.link_cycles = link_cycles
+        self.link_down = False
+        self._dark = 0  # cycles in a row without a frame
+        self._check = False
+        # False while the backend brings the slaves to OP: a short working counter is
+        # expected then, and not a drop-out (set by the backend when opening ends).
+        self.supervise = False
+        self._hooks: List[Hook] = []
+        self._al_text = al_text
+        self._clock = clock
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    # -- the API for cyclic set-points (tcp_bridge.backends.ethercat, "CSP") ----------
+
+    def add_hook(self, hook: Hook) -> None:
+        """Call ``hook(cycle)`` at the start of every cycle, on the cycle thread, before
+        the outputs are sent. It must be quick; one that raises is removed and logged."""
+        with self.lock:
+            self._hooks.append(hook)
+
+    def remove_hook(self, hook: Hook) -> None:
+        with self.lock:
+            if hook in self._hooks:
+                self._hooks.remove(hook)
+
+    # -- the cycle --------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="ethercat-cycle", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            s = self.stats
+            log.info("ethercat: %d cycles, %d with a short working counter, %d without a "
+                     "frame, %d overruns, latest start %.2f ms after its deadline", s.cycles,
+                     s.wkc_errors, s.no_frame, s.overruns, s.max_late_ms)
+
+    def _run(self) -> None:
+        due = self._clock()
+        while not self._stop.is_set():
+            late = self._clock() - due
+            if late > self.period:
+                self.stats.overruns += 1
+                due = self._clock()
+            if late > self.period / 2 and self.stats.max_late_ms <= self.period * 500.0:
+                log.warning("ethercat: a cycle started %.1f ms late (cycle %.1f ms): the host "
+                            "is loaded, or cycle_ms is too short for it", late * 1000.0,
+                            self.period * 1000.0)
+            self.stats.max_late_ms = max(self.stats.max_late_ms, late * 1000.0)
+            try:
+                self.step()
+            except Exception:  # a bug must not end the cycle: the watchdogs would trip
+                log.exception("ethercat cycle failed")
+            due += self.period
+            self._stop.wait(max(0.0, due - self._clock()))
+
+    def step(self) -> int:
+        """One cycle (rule 2), then a state check when needed (rule 3); the working counter."""
+        with self.lock:
+            count = self.stats.cycles
+            for hook in list(self._hooks):
+                try:
+                    hook(count)
+                except Exception:
+                    log.exception("ethercat cycle hook %r failed: removed", hook)
+                    self._hooks.remove(hook)
+            for position, slave in self.slaves.items():
+                slave.output = bytes(self.outputs[position])
+            self.master.send_processdata()
+            wkc = int(self.master.receive_processdata(2000))
+            for position, slave in self.slaves.items():
+                self.inputs[position] = bytes(slave.input)
+            self._account(wkc)
+            if self.supervise and (self._check or wkc < int(self.master.expected_wkc)):
+                self._check_states()
+        with self.fresh:
+            self.stats.cycles += 1
+            self.fresh.notify_all()
+        return wkc
+
+    def _account(self, wkc: int) -> None:
+        if wkc < 1:
+            self.stats.no_frame += 1
+            self._dark += 1
+            if self._dark >= self.link_cycles and not self.link_down:
+                self.link_down = True
+                log.warning("ethercat: no frame came back for %d cycles: the link is down",
+                            self._dark)
+        else:
+            if self.link_down:
+                log.warning("ethercat: frames come back again")
+            self._dark, self.link_down = 0, False
+        if wkc < int(self.master.expected_wkc):
+            self.stats.wkc_errors += 1
+
+    def wait_cycles(self, count: int, timeout: float) -> bool:
+        """Wait until ``count`` more cycles have completed; False after ``timeout`` s."""
+        with self.fresh:
+            target = self.stats.cycles + count
+            return self.fresh.wait_for(lambda: self.stats.cycles >= target, timeout)
+
+    # -- drop-out and recovery (rule 3) -----------------------------------------------
+
+    def _check_states(self) -> None:
+        self.master.read_state()
+        self._check = False
+        for position, slave in self.slaves.items():
+            state = int(slave.state)
+            if state == OP:
+                if position in self.lost:
+                    del self.lost[position]
+                    log.warning("ethercat: slave %d is back in OP", position)
+                continue
+            self._check = True  # look again next cycle until every slave is in OP
+            if position not in self.lost:
+                self.lost[position] = self.describe(position, state)
+                log.warning("ethercat: slave %d dropped out: %s", position, self.lost[position])
+            self._recover(slave, state)
+
+    def describe(self, position: int, state: Optional[int] = None) -> str:
+        slave = self.slaves[position]
+        state = int(slave.state) if state is None else state
+        code = int(getattr(slave, "al_status", 0) or 0)
+        why = f"slave {position} is in {state_name(state)}"
+        if code:
+            why += f", AL status 0x{code:04X} {self._al_text(code)}"
+        return why
+
+    def _recover(self, slave: Any, state: int) -> None:
+        if state == SAFEOP | ERROR:
+            slave.state = SAFEOP | ACK
+            slave.write_state()
+        elif state == SAFEOP:
+            slave.state = OP
+            slave.write_state()
+        elif state > NONE:
+            if slave.reconfig(RECOVER_TIMEOUT_US) >= SAFEOP:  # back to SAFEOP: OP next check
+                self._check = True
+        elif slave.recover(RECOVER_TIMEOUT_US) > 0:  # a slave that vanished is back
+            self._check = True

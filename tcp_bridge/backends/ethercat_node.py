@@ -1,0 +1,162 @@
+"""A slave of an ``ethercat`` bus as a node with canopen's interface, and its errors.
+
+What goes by process data and what by CoE SDO, the errors, and the cyclic
+set-point API are described in :mod:`tcp_bridge.backends.ethercat` (module
+docstring); the lock and the cycle in :mod:`tcp_bridge.backends.ethercat_cycle`.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Optional
+
+from canopen.nmt import NmtError
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from ..bus.sdo import object_type
+from ..errors import BusUnavailable
+from . import ethercat_pdo as pdo
+from .ethercat_cycle import INIT
+
+
+class SlaveUnreachable(SdoCommunicationError):  # type: ignore[misc]
+    """The slave is lost or out of OP, or its mailbox gave no answer: a silent node."""
+
+
+class LinkDown(BusUnavailable):
+    """No frame comes back on the card: the bus's device is silent."""
+
+
+class EthercatNode:
+    """One slave; ``sdo`` is itself (canopen's ``upload``/``download``)."""
+
+    def __init__(self, backend: Any, position: int) -> None:
+        self.id = position
+        self._bus = backend
+        self.sdo = self
+        self.nmt = _Nmt(self)
+
+    @property
+    def _layout(self) -> Optional[pdo.Layout]:  # None: the slave's mapping is unknown
+        return self._bus.layouts.get(self.id)
+
+    def _reachable(self) -> Any:
+        cycle = self._bus.cycle
+        if cycle.link_down:
+            raise LinkDown(f"no EtherCAT frame comes back on {self._bus.interface}")
+        slave = cycle.slaves.get(self.id)
+        if slave is None:
+            raise SlaveUnreachable(f"no slave at position {self.id} on {self._bus.interface} "
+                                   f"({len(cycle.slaves)} found)")
+        why = cycle.lost.get(self.id)
+        if why is not None:
+            raise SlaveUnreachable(why)
+        return slave
+
+    def upload(self, index: int, subindex: int) -> bytes:
+        slave = self._reachable()
+        layout, cycle = self._layout, self._bus.cycle
+        if layout is not None and (index, subindex) in layout.inputs:
+            if not cycle.wait_cycles(1, self._bus.sdo_timeout + 10 * cycle.period):
+                raise SlaveUnreachable(f"slave {self.id}: no process-data cycle completed")
+            self._reachable()  # that cycle may have found it lost
+            entry = layout.inputs[(index, subindex)]
+            return cycle.inputs[self.id][entry.offset:entry.offset + entry.size]
+        if layout is not None and (index, subindex) in layout.outputs:
+            entry = layout.outputs[(index, subindex)]
+            with cycle.lock:
+                return bytes(cycle.outputs[self.id][entry.offset:entry.offset + entry.size])
+        with cycle.lock:
+            return bytes(self._mailbox(lambda: slave.sdo_read(index, subindex, ca=False)))
+
+    def download(self, index: int, subindex: int, data: bytes,
+                 force_segment: bool = False) -> None:
+        slave = self._reachable()
+        layout, cycle = self._layout, self._bus.cycle
+        if layout is not None and (index, subindex) in layout.outputs:
+            entry = layout.outputs[(index, subindex)]
+            if len(data) != entry.size:  # what an SDO would answer (CiA 301 7.2.4.3.17)
+                raise SdoAbortedError(0x06070010)
+            with cycle.lock:
+                pdo.put(cycle.outputs[self.id], entry, bytes(data))
+            if not cycle.wait_cycles(2, self._bus.sdo_timeout + 10 * cycle.period):
+                raise SlaveUnreachable(f"slave {self.id}: no process-data cycle carried it")
+            self._reachable()
+            return
+        with cycle.lock:
+            self._mailbox(lambda: slave.sdo_write(index, subindex, bytes(data), ca=False))
+
+    def _mailbox(self, transfer: Callable[[], Any]) -> Any:
+        """A CoE transfer; pysoem's errors become the backend's (module docstring)."""
+        soem = self._bus.soem
+        try:
+            return transfer()
+        except soem.SdoError as exc:
+            raise SdoAbortedError(int(exc.abort_code)) from exc
+        except soem.WkcError as exc:
+            self._bus.cycle._check = True  # the next cycle reads the slaves' states
+            raise SlaveUnreachable(f"slave {self.id}: its mailbox did not answer "
+                                   f"(working counter {getattr(exc, 'wkc', '?')})") from exc
+        except (soem.MailboxError, soem.PacketError) as exc:
+            raise SlaveUnreachable(f"slave {self.id}: mailbox error "
+                                   f"{getattr(exc, 'error_code', '?')} "
+                                   f"{getattr(exc, 'desc', '')}".rstrip()) from exc
+
+    # -- cyclic set-points (module docstring, "Cyclic set-points") ------------------------
+
+    def pdo_write(self, index: int, subindex: int, value: int) -> None:
+        """Put ``value`` into the output image now (sent with the next cycle); KeyError
+        if the slave does not map the object into its outputs."""
+        layout = self._layout
+        if layout is None or (index, subindex) not in layout.outputs:
+            raise KeyError(f"slave {self.id} maps no 0x{index:04X}/{subindex} in its outputs")
+        entry = layout.outputs[(index, subindex)]
+        data = int(value).to_bytes(entry.size, "little", signed=object_type(index, subindex)[1])
+        with self._bus.cycle.lock:
+            pdo.put(self._bus.cycle.outputs[self.id], entry, data)
+
+    def cyclic_target(self, position: int) -> None:
+        """The CSP set-point of this cycle: target position 607Ah in the outputs."""
+        self.pdo_write(0x607A, 0, position)
+
+    def pdo_read(self, index: int, subindex: int = 0) -> int:
+        """The newest value of a mapped object (inputs first, else outputs); KeyError
+        if it is not mapped. Does not wait for a cycle."""
+        layout, cycle = self._layout, self._bus.cycle
+        signed = object_type(index, subindex)[1]
+        if layout is not None and (index, subindex) in layout.inputs:
+            return pdo.get(cycle.inputs[self.id], layout.inputs[(index, subindex)], signed)
+        if layout is not None and (index, subindex) in layout.outputs:
+            with cycle.lock:
+                return pdo.get(cycle.outputs[self.id], layout.outputs[(index, subindex)], signed)
+        raise KeyError(f"slave {self.id} maps no 0x{index:04X}/{subindex}")
+
+
+class _Nmt:
+    """canopen's NmtMaster as far as EtherCAT has it (module docstring, chosen)."""
+
+    def __init__(self, node: EthercatNode) -> None:
+        self._node = node
+
+    @property
+    def state(self) -> str:
+        cycle = self._node._bus.cycle
+        slave = cycle.slaves.get(self._node.id)
+        return "OPERATIONAL" if slave is not None and self._node.id not in cycle.lost else "STOPPED"
+
+    @state.setter
+    def state(self, value: str) -> None:
+        node, cycle = self._node, self._node._bus.cycle
+        slave = cycle.slaves.get(node.id)
+        if value == "OPERATIONAL":
+            with cycle.lock:
+                cycle._check = True  # the next cycle looks at it, and asks for OP if needed
+            return
+        if not value.startswith("RESET"):
+            raise NmtError(f"EtherCAT has no NMT {value.lower()} (slave {node.id})")
+        if slave is None:
+            raise SlaveUnreachable(f"no slave at position {node.id}")
+        # Chosen (module docstring of ethercat): INIT and back to OP by the recovery.
+        with cycle.lock:
+            slave.state = INIT
+            slave.write_state()
+            cycle.lost[node.id] = f"slave {node.id} was reset by the bridge (INIT, back to OP)"
+            cycle._check = True
