@@ -2,7 +2,7 @@
 """One entry point that sets itself up: ``python3 dev.py start`` or ``python3 dev.py test``.
 
 It creates ``.venv`` beside this file on first use (and again whenever
-pyproject.toml changes), installs the project with its test and plot extras, then runs
+pyproject.toml changes), installs the project with its test, plot and ethercat extras, then runs
 the chosen job inside that environment. Only python3 is needed.
 
 ``start`` runs ``tcp-bridge serve`` with the arguments given: on the embedded
@@ -34,9 +34,9 @@ def ensure_env() -> None:
     if not PY.exists():
         print("dev.py: creating .venv", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    print("dev.py: installing the project and its test and plot extras into .venv", flush=True)
+    print("dev.py: installing the project and its test, plot and ethercat extras into .venv", flush=True)
     pip = [str(PY), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
-    subprocess.run(pip + ["-e", f"{ROOT}[test,plot]"], check=True)  # plot: the record tests
+    subprocess.run(pip + ["-e", f"{ROOT}[test,plot,ethercat]"], check=True)  # plot, ethercat: their tests
     STAMP.write_text(want)
 
 
