@@ -284,7 +284,7 @@ def test_outputs_are_ignored_in_safe_op() -> None:
 def test_watchdog_drops_op_to_safe_op_with_0x001b() -> None:
     seg, _ = segment()
     to_op(seg, now=10.0)
-    left = []
+    left: list[str] = []
     seg.slaves[0].on_leave_op = left.append
     for k in range(1, 20):  # cycles every 50 ms keep it alive
         logical(seg, Command.LRW, 0, bytes(24), now=10.0 + 0.05 * k)

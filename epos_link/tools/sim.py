@@ -18,6 +18,12 @@ gateway, the EPOS4 itself) is also served over the socketcand protocol
     CAN bus served over socketcand at 127.0.0.1:29536 (channel can0)
     $ python -m can.logger -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536
 
+``--ethercat IFACE [--slaves N]`` serves simulated drives as EtherCAT slaves on a
+network interface instead (:mod:`epos_link.simulator.ethercat`; root or CAP_NET_RAW)::
+
+    $ sudo epos-link sim --ethercat ecatB --slaves 2
+    EtherCAT: 2 simulated EPOS4 slave(s) on ecatB
+
 With ``--usb`` a line on standard input controls the cable: ``unplug [N]``,
 ``replug [N]`` (unit N, default all); SIGUSR1 unplugs and SIGUSR2 replugs every unit.
 """
