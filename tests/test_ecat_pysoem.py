@@ -41,7 +41,7 @@ def line() -> Iterator[tuple[Any, Any]]:
                             text=True)
     master = pysoem.Master()
     try:
-        assert proc.stdout is not None
+        assert proc.stdout is not None and proc.stderr is not None
         line_ = proc.stdout.readline()
         assert "EtherCAT" in line_, (line_, proc.stderr.read() if proc.poll() is not None else "")
         master.open(master_end)
