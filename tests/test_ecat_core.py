@@ -8,6 +8,7 @@ from __future__ import annotations
 import struct
 
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from epos_link.simulator.ethercat.coe import SdoAbort
 from epos_link.simulator.ethercat.frame import (Command, Datagram, FrameError, build_frame,
@@ -308,3 +309,49 @@ def test_watchdog_time_follows_its_registers_and_sm2_bit_6() -> None:
     assert slave.watchdog_time() == pytest.approx(0.02)
     fpwr(seg, 0x0814, b"\x24")  # SM2 control without bit 6: no watchdog
     assert slave.watchdog_time() is None
+
+
+# -- robustness ------------------------------------------------------------------------------------
+
+def test_several_datagrams_in_one_frame_are_all_processed() -> None:
+    seg, _ = segment(2)
+    dgs = [Datagram(Command.BRD, 1, 0, bytearray(2)),
+           Datagram(Command.APWR, 2, 0 | 0x0010 << 16, bytearray(b"\x01\x10")),
+           Datagram(Command.FPRD, 3, 0x1001 | 0x0130 << 16, bytearray(2))]
+    reply = seg.handle(build_frame(ETH, dgs), 0.0)
+    assert reply is not None
+    _eth, out = parse_frame(reply)
+    assert [(d.index, d.wkc) for d in out] == [(1, 2), (2, 1), (3, 1)]
+    assert out[2].data == b"\x01\x00"
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=120))
+def test_random_bytes_parse_or_raise_frame_error(raw: bytes) -> None:
+    for candidate in (raw, ETH + raw):
+        try:
+            parse_frame(candidate)
+        except FrameError:
+            pass
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(list(Command)), st.integers(0, 0xFFFFFFFF),
+                          st.binary(max_size=64)), min_size=1, max_size=12))
+def test_random_datagrams_never_break_the_slaves(ops: list[tuple[int, int, bytes]]) -> None:
+    seg, _ = segment(2)
+    to_preop(seg)  # mailbox live, so random writes also reach the CoE server
+    for n, (command, address, data) in enumerate(ops):
+        reply = seg.handle(build_frame(ETH, [Datagram(command, n, address, bytearray(data))]), n * 0.01)
+        assert reply is not None
+        seg.tick(n * 0.01 + 0.5)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(min_size=0, max_size=42))
+def test_random_mailbox_messages_get_an_answer(body: bytes) -> None:
+    seg, _ = segment()
+    to_preop(seg)
+    message = struct.pack("<HHBB", len(body), 0, 0, 0x03) + body
+    assert fpwr(seg, 0x1000, message.ljust(48, b"\x00")) == 1
+    assert fprd(seg, 0x080D, 1)[0] & 0x08  # every message is answered: SDO, abort or error

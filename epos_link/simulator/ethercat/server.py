@@ -12,6 +12,7 @@ Needs root or CAP_NET_RAW; :func:`open_socket` raises ``PermissionError`` or
 """
 from __future__ import annotations
 
+import logging
 import select
 import socket
 import threading
@@ -25,6 +26,7 @@ from .segment import Segment
 __all__ = ["EthercatServer", "open_socket", "TICK"]
 
 TICK = 0.005
+_log = logging.getLogger(__name__)
 
 
 def open_socket(interface: str) -> socket.socket:
@@ -70,8 +72,12 @@ class EthercatServer:
                     return
                 time.sleep(TICK)  # the interface went down: wait for it or for close()
                 continue
-            with self.lock:
-                reply = self.segment.handle(frame, self.clock())
+            try:
+                with self.lock:
+                    reply = self.segment.handle(frame, self.clock())
+            except Exception:  # a bug must not end the line: drop the frame, as a CRC error would
+                _log.exception("EtherCAT frame dropped")
+                continue
             if reply is not None:
                 try:
                     sock.send(reply)
