@@ -18,6 +18,12 @@ gateway, the EPOS4 itself) is also served over the socketcand protocol
     CAN bus served over socketcand at 127.0.0.1:29536 (channel can0)
     $ python -m can.logger -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536
 
+``--ethercat IFACE [--slaves N]`` serves simulated drives as EtherCAT slaves on a
+network interface instead (:mod:`epos_link.simulator.ethercat`; root or CAP_NET_RAW)::
+
+    $ sudo epos-link sim --ethercat ecatB --slaves 2
+    EtherCAT: 2 simulated EPOS4 slave(s) on ecatB
+
 With ``--usb`` a line on standard input controls the cable: ``unplug [N]``,
 ``replug [N]`` (unit N, default all); SIGUSR1 unplugs and SIGUSR2 replugs every unit.
 """
@@ -109,6 +115,16 @@ def _serials(text: str) -> list[str]:
     return serials
 
 
+def _slave_count(text: str) -> int:
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if not 1 <= count <= 64:
+        raise argparse.ArgumentTypeError(f"a number of slaves is 1..64, got {text!r}")
+    return count
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
@@ -118,6 +134,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="appear as USB device 24E7:3B01 on a umockdev testbed (reach it with "
                             "usb:// under umockdev-wrapper; needs Debian's umockdev, "
                             "gir1.2-umockdev-1.0, python3-gi)")
+    where.add_argument("--ethercat", metavar="IFACE",
+                       help="serve simulated EPOS4 drives as EtherCAT slaves on network "
+                            "interface IFACE (raw socket: root or CAP_NET_RAW; e.g. one end "
+                            "of a veth pair, the master on the other)")
+    parser.add_argument("--slaves", type=_slave_count, default=1, metavar="N",
+                        help="--ethercat: N drives in a line (default 1)")
     parser.add_argument("--serial", type=_serials, default=None, metavar="SN[,SN...]",
                         help="--usb: the USB serial number; several make several units "
                              "(default SIM00001)")
@@ -144,6 +166,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
+    if getattr(args, "ethercat", None):
+        return _run_ethercat(args, ready)
+    if getattr(args, "slaves", 1) != 1:
+        print("epos-link sim: --slaves applies to --ethercat only", file=sys.stderr)
+        return 2
     conflict = own_id_conflict(args.node_id, args.drives)
     if conflict:
         print(f"epos-link sim: {conflict}", file=sys.stderr)
@@ -309,3 +336,35 @@ def _control_usb(link: Any, stop: threading.Event) -> None:
                 target=change, args=(a, None), daemon=True).start())
     if sys.stdin is not None and not sys.stdin.closed:
         threading.Thread(target=from_stdin, name="epos-sim-usb-control", daemon=True).start()
+
+
+def _run_ethercat(args: argparse.Namespace, ready: Optional[threading.Event]) -> int:
+    """``--ethercat IFACE``: EtherCAT slaves on a raw socket (epos_link.simulator.ethercat)."""
+    from ..simulator.ethercat.server import EthercatServer
+
+    if args.drives or args.serial or args.can_server or args.trace or args.baud:
+        print("epos-link sim: --ethercat takes only --slaves (and -v)", file=sys.stderr)
+        return 2
+    try:
+        server = EthercatServer(args.ethercat, slaves=args.slaves)
+    except PermissionError:
+        print(f"epos-link sim: --ethercat {args.ethercat} needs root or CAP_NET_RAW "
+              "(a raw packet socket)", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        print(f"epos-link sim: cannot serve EtherCAT on {args.ethercat!r}: {why}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+    print(f"EtherCAT: {args.slaves} simulated EPOS4 slave(s) on {args.ethercat}", flush=True)
+    if ready is not None:
+        ready.set()
+    try:
+        while not stop.wait(0.2):
+            pass
+    finally:
+        server.close()
+    return 0

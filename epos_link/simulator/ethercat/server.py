@@ -1,0 +1,98 @@
+"""Serve simulated EPOS4 drives as EtherCAT slaves on a network interface (I/O).
+
+A raw ``AF_PACKET`` socket bound to the interface for EtherType 0x88A4; one
+thread receives each frame, runs it through the :class:`~.segment.Segment`
+(the pure core) and sends the processed frame back out of the same interface,
+as the last slave of a line returns it to the master. On a veth pair the
+master opens the other end. Between frames the thread wakes every
+``TICK`` seconds so the process-data watchdog expires without traffic.
+
+Needs root or CAP_NET_RAW; :func:`open_socket` raises ``PermissionError`` or
+``OSError`` (no such interface) for the CLI to report.
+"""
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import threading
+import time
+from typing import Callable, Optional
+
+from .drive_app import EthercatDrive
+from .frame import ETHERTYPE
+from .segment import Segment
+
+__all__ = ["EthercatServer", "open_socket", "TICK"]
+
+TICK = 0.005
+_log = logging.getLogger(__name__)
+
+
+def open_socket(interface: str) -> socket.socket:
+    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
+    try:
+        sock.bind((interface, ETHERTYPE))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+class EthercatServer:
+    """``slaves`` simulated drives in a line on ``interface``; :meth:`close` stops it."""
+
+    def __init__(self, interface: str, slaves: int = 1,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not 1 <= slaves <= 64:
+            raise ValueError("1..64 slaves")
+        self.interface = interface
+        self.clock = clock
+        self.drives = [EthercatDrive(n, clock) for n in range(1, slaves + 1)]
+        self.segment = Segment([d.slave for d in self.drives])
+        self.lock = threading.Lock()  # the segment: this thread against tests looking in
+        self._sock: Optional[socket.socket] = open_socket(interface)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"ethercat-{interface}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sock = self._sock
+        assert sock is not None
+        while not self._stop.is_set():
+            try:
+                readable, _, _ = select.select([sock], [], [], TICK)
+                if not readable:
+                    with self.lock:
+                        self.segment.tick(self.clock())
+                    continue
+                frame = sock.recv(4096)
+            except OSError:
+                if self._stop.is_set():
+                    return
+                time.sleep(TICK)  # the interface went down: wait for it or for close()
+                continue
+            try:
+                with self.lock:
+                    reply = self.segment.handle(frame, self.clock())
+            except Exception:  # a bug must not end the line: drop the frame, as a CRC error would
+                _log.exception("EtherCAT frame dropped")
+                continue
+            if reply is not None:
+                try:
+                    sock.send(reply)
+                except OSError:
+                    pass  # the link is gone; the master will time out, as on a cut cable
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def __enter__(self) -> "EthercatServer":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
