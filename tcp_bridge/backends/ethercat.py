@@ -51,7 +51,10 @@ Cyclic set-points (for internal axes in CSP, the bridge computing the profile):
 into the output image without waiting (it goes out with the next cycle);
 :meth:`EthercatNode.pdo_read` reads the newest input (or output) value;
 :meth:`EthercatBackend.add_cycle_hook` calls a function at the start of every
-cycle, on the cycle thread, before the outputs are sent.
+cycle, on the cycle thread, before the outputs are sent. Internal axes in CSP
+(``cyclic = "csp"``) use them: :mod:`.ethercat_csp` makes each set-point on the
+cycle that sends it; the slaves' SM watchdog (``watchdog_ms``) is what stops the
+drives when the bridge dies, so no heartbeat is needed (or accepted) here.
 
 **Chosen** (CoE has no NMT; ETG.1000.6 6.4 has the EtherCAT state machine
 instead): ``nmt.state = "OPERATIONAL"`` makes the next cycle look at the
@@ -72,6 +75,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 from ..errors import BusUnavailable
 from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from . import ethercat_pdo as pdo
+from .ethercat_csp import CycleSender, EthercatSetpoints
 from .ethercat_cycle import INIT, OP, SAFEOP, CycleLoop, state_name
 from .ethercat_node import EthercatNode, LinkDown, SlaveUnreachable
 
@@ -157,6 +161,13 @@ class EthercatBackend:
             master.close()
             raise
         self.nodes: Dict[int, EthercatNode] = {}
+        # cyclic = "csp" (issue 26): set-points made on the cycle itself (.ethercat_csp).
+        self.cyclic_nodes = frozenset(a.node_id for a in axes if a.cyclic is not None)
+        self.cyclic: Optional[CycleSender] = None
+        if self.cyclic_nodes and not read_only:
+            self.cyclic = CycleSender(bus.name, EthercatSetpoints(self), self.cycle.period,
+                                      self.cycle.add_hook, self.cycle.remove_hook)
+            self.cyclic.begin()
         missing = [a.node_id for a in axes if a.node_id not in self.cycle.slaves]
         if missing:
             log.warning("bus %s: no slave at position %s (%d found): those axes are absent",
@@ -255,6 +266,8 @@ class EthercatBackend:
         node = self.nodes.get(node_id)
         if node is None:
             node = self.nodes[node_id] = EthercatNode(self, node_id)
+            if node_id in self.cyclic_nodes:
+                node.cyclic = self.cyclic
         return node
 
     def add_cycle_hook(self, hook: Callable[[int], None]) -> None:
@@ -287,6 +300,9 @@ class EthercatBackend:
                 "cable from the card to the first slave and the slaves' power")
 
     def close(self) -> None:
+        if self.cyclic is not None:  # cyclic moves ramp down while the cycle goes on
+            self.cyclic.finish_runs()
+            self.cyclic.kill()
         self.cycle.stop()
         with self.cycle.lock:
             try:

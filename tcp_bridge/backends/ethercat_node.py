@@ -33,6 +33,7 @@ class EthercatNode:
         self._bus = backend
         self.sdo = self
         self.nmt = _Nmt(self)
+        self.cyclic: Optional[Any] = None  # cyclic = "csp": the bus's CycleSender
 
     @property
     def _layout(self) -> Optional[pdo.Layout]:  # None: the slave's mapping is unknown

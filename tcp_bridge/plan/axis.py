@@ -298,9 +298,12 @@ class AxisRuntime:
             f.axis.leader = self
 
 
-# 05 velocity, 06 acceleration, 26-28 limits: kept by the bridge for a cyclic axis, whose
-# profile it computes; never written to its drive (6081h, 6083h, 607Fh, 60C5h, 6085h).
-BRIDGE_PROFILE: Final = frozenset({5, 6, 26, 27, 28})
+# 02 target, 05 velocity, 06 acceleration, 26-28 limits: kept by the bridge for a cyclic
+# axis, whose profile it computes; never written to its drive (607Ah, 6081h, 6083h, 607Fh,
+# 60C5h, 6085h). 02 too: in CSP 607Ah is the live set-point the stream owns, so after a
+# first cyclic move an S02 written to the drive would be refused (plan.writes) or, in any
+# other mode, be a value the next move never reads (it uses the bridge's 02).
+BRIDGE_PROFILE: Final = frozenset({2, 5, 6, 26, 27, 28})
 _NOT_INTERNAL_26: Final = {DeviceCode.C_DC_TECHNOSOFT_CAN, DeviceCode.C_DC_TECHNOSOFT_EC,
                            DeviceCode.C_DC_COBLEY_CAN}
 

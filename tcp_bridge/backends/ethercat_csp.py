@@ -1,0 +1,132 @@
+"""Internal axes in CSP on an ``ethercat`` bus: set-points made on the process-data cycle.
+
+The CAN bus streams CSP set-points from a thread of its own
+(:class:`tcp_bridge.motion.cyclic.CyclicSender`). On EtherCAT the backend
+already has a thread that sends the process data every ``cycle_ms``
+(:mod:`.ethercat_cycle`), and a cycle hook runs on it before the outputs go
+out. :class:`CycleSender` is the same sender (the same runs, stop ramps,
+ACK-when-started and error rules) with that hook as its loop: every cycle
+samples the profile at that moment and puts 607Ah into the output image of
+that very cycle. **Chosen** over a second thread at ``cycle_ms``: one clock,
+no beat between two loops (a second thread would hand a set-point over up to
+a cycle late, or two in one cycle), and no extra thread to watch.
+
+What protects the drives when the bridge dies is the slaves' process-data
+(SyncManager 2) watchdog, ``watchdog_ms``: no frames, no set-points, and each
+slave leaves OP for SAFE-OP with AL status 0x001B (ETG.1000.6 Table 11) and
+its drive reacts per 6007h "abort connection option code" (CiA 402-2 6007h;
+3, quick stop, is maxon's default). The same holds if only the cycle thread
+stalls, since the set-points and the frames are one thing here. So an
+EtherCAT bus with cyclic axes needs no heartbeat (``heartbeat_ms`` is not an
+ethercat option at all).
+
+:class:`EthercatSetpoints` never writes the controlword: 6040h in the outputs
+keeps what the bridge's enable wrote through ``node.sdo.download`` (which the
+backend routes to the process image). Writing "enable operation" every cycle
+would undo a quick stop (CiA 402-2 transition 16; :class:`CanopenSetpoints`
+says more). A slave that is lost (out of OP) or a link that is down ends the
+run (a transport error, logged): the drive holds its last set-point or is in
+its own watchdog reaction, and a set-point stream must not resume behind it
+when the recovery brings the slave back to OP.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable, Dict, Iterable, Mapping
+
+from ..errors import DeviceFailure
+from ..motion.cyclic import CyclicSender
+
+log = logging.getLogger("tcp_bridge.motion")
+
+TARGET_POSITION = 0x607A
+POSITION_ACTUAL = 0x6064
+
+
+class EthercatSetpoints:
+    """:class:`~tcp_bridge.motion.cyclic.Setpoints` through an ethercat backend's PDOs."""
+
+    def __init__(self, backend: Any) -> None:
+        self.backend = backend
+
+    def prepare(self, node: int) -> None:
+        """607Ah must be in the slave's RxPDO mapping (1C12h assignment): CSP needs it."""
+        layout = self.backend.layouts.get(node)
+        if layout is None:
+            raise DeviceFailure(f"slave {node}: its PDO mapping is unknown (logged at opening), "
+                                "so the target position 607Ah cannot be sent cyclically")
+        if (TARGET_POSITION, 0) not in layout.outputs:
+            raise DeviceFailure(f"slave {node}: the target position 607Ah is not mapped in its "
+                                "outputs (RxPDO, 1C12h); CSP needs it in the process data")
+
+    def write_targets(self, targets: Mapping[int, int]) -> None:
+        cycle = self.backend.cycle
+        if cycle.link_down:
+            raise DeviceFailure(f"no EtherCAT frame comes back on {self.backend.interface}")
+        for node in targets:
+            why = cycle.lost.get(node)
+            if why is not None:
+                raise DeviceFailure(why)
+        for node, position in targets.items():
+            self.backend.node(node).cyclic_target(position)  # 607Ah only, never 6040h
+
+    def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
+        out: Dict[int, int] = {}
+        for n in nodes:
+            node = self.backend.node(n)
+            try:
+                out[n] = node.pdo_read(POSITION_ACTUAL)
+            except KeyError:  # not in the inputs: by CoE SDO
+                out[n] = int.from_bytes(node.sdo.upload(POSITION_ACTUAL, 0)[:4], "little",
+                                        signed=True)
+        return out
+
+
+class CycleSender(CyclicSender):
+    """A :class:`CyclicSender` whose loop is a cycle hook (module docstring, chosen)."""
+
+    def __init__(self, bus: str, transport: Any, cycle_s: float,
+                 add_hook: Callable[[Callable[[int], None]], None],
+                 remove_hook: Callable[[Callable[[int], None]], None]) -> None:
+        super().__init__(bus, transport, cycle_s)
+        self._add_hook, self._remove_hook = add_hook, remove_hook
+        self._hooked = False
+
+    def add_beat(self, period_s: float, send: Callable[[], None]) -> None:
+        raise NotImplementedError("an EtherCAT bus has no heartbeat: the SM watchdog watches")
+
+    def begin(self) -> None:
+        if not self._hooked and not self._stop.is_set():
+            self._hooked = True
+            self._add_hook(self._on_cycle)
+
+    def kill(self) -> None:
+        """Nothing more is written into the outputs (the cycle itself goes on)."""
+        self._stop.set()
+        if self._hooked:
+            self._remove_hook(self._on_cycle)
+            self._hooked = False
+
+    def alive(self) -> bool:
+        return self._hooked and not self._stop.is_set()
+
+    def start(self, nodes: Any, line: Any, timeout: float) -> Any:
+        if self._stop.is_set():
+            raise DeviceFailure(f"bus {self.bus}: the cyclic set-points have ended")
+        return super().start(nodes, line, timeout)
+
+    def _on_cycle(self, count: int) -> None:
+        if self._stop.is_set():
+            return
+        try:
+            self._cycle()
+        except Exception:  # a bug: the runs end (the drives hold), the hook stays
+            log.exception("bus %s: cyclic set-points failed; the cyclic moves end here",
+                          self.bus)
+            with self._lock:
+                for run in list(self._runs):
+                    run.failure = "internal error"
+                    self._end(run)
+
+
+__all__ = ["CycleSender", "EthercatSetpoints"]

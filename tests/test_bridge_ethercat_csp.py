@@ -1,0 +1,244 @@
+"""Issue 26 on EtherCAT: two simulated slaves as two internal axes in CSP, their set-points
+made on the bridge's process-data cycle (:mod:`tcp_bridge.backends.ethercat_csp`).
+
+A veth pair; on one end the simulated EPOS4 slaves (:class:`EthercatServer`) run in
+*this* process, so the test reads the drive models directly (positions, CiA 402
+states, the slaves' AL state and status code) without going through the bridge;
+on the other end the bridge runs as ``tcp-bridge serve --config`` in a subprocess
+(pysoem holds the GIL during its exchanges, and the subprocess is what the
+dead-bridge test SIGKILLs). Needs root, iproute2 and pysoem; each missing piece
+skips the module with a line saying which.
+
+Sampling margin: the sampler reads the two drives one after the other, each under
+its own lock, a few microseconds apart, and the two slaves take each frame's
+set-points one after the other too (the simulator handles a frame slave by slave);
+at 20 mm/s that is far below the 2 % asked (0.8 mm of the 40 mm line), so the
+check is the brief's 2 % without an extra margin. No bound here is a tight
+wall-clock bound: the checks are about the shape of the motion.
+"""
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Iterator, List, Tuple
+
+import pytest
+
+from epos_link.cia402 import State
+from tcp_bridge.tables.axes import simulated_increments_per_revolution
+from tcp_bridge.wire import Status
+from tests.ecat_veth import unavailable_reason, veth_pair
+from tests.helpers import psi_ask, wait_until
+
+WHY_NOT = unavailable_reason()
+pytestmark = pytest.mark.skipif(bool(WHY_NOT), reason=WHY_NOT or "runs")
+
+ROOT = Path(__file__).resolve().parent.parent
+FACTOR = 1000  # increments per mm
+VELOCITY, ACCELERATION, STOP = 20, 40, 80  # mm/s, mm/s^2 (05, 06, 28)
+Sample = Tuple[float, int, int, State, State]  # time, position of slave 1, of 2, states
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[Tuple[object, str]]:
+    from epos_link.simulator.ethercat.server import EthercatServer
+
+    try:
+        pair = veth_pair()
+        master, slave = pair.__enter__()
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
+    try:
+        with EthercatServer(slave, slaves=2) as sim:
+            yield sim, master
+    finally:
+        pair.__exit__(None, None, None)
+
+
+def write_table(tmp: Path, interface: str) -> Path:
+    axes = "".join(
+        f"[[axis]]\naddr = {n}\ndevice = 5\nbus_offset = 1000000\nnode_id = {n}\n"
+        f"internal = true\ncyclic = \"csp\"\nposition_factor = {FACTOR}\n"
+        f"increments_per_revolution = {simulated_increments_per_revolution()}\n"
+        f"[axis.parameters]\nvelocity = {VELOCITY}\nacceleration = {ACCELERATION}\n"
+        f"quickstop_accel = {STOP}\n\n" for n in (1, 2))
+    table = tmp / "axes.toml"
+    table.write_text(
+        "[bridge]\nack_timeout = 2.0\nstate_timeout = 1.0\nreset_timeout = 3.0\n\n"
+        f"[bus.ethercat]\nbackend = \"ethercat\"\ninterface = \"{interface}\"\ncycle_ms = 4\n"
+        f"watchdog_ms = 100\n\n{axes}")
+    return table
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def bridge(server: Tuple[object, str], tmp_path: Path) -> Iterator[Tuple[socket.socket,
+                                                                          "subprocess.Popen[str]"]]:
+    table = write_table(tmp_path, server[1])
+    log = tmp_path / "bridge.log"
+    port = free_port()
+    with log.open("w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "tcp_bridge.cli", "serve", "--config",
+                                 str(table), "--port", str(port), "--maintenance-port", "-1", "-v"],
+                                cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_until(lambda: "listening on" in log.read_text() or proc.poll() is not None, 60,
+                   "the bridge never listened")
+        assert proc.poll() is None, log.read_text()
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+            yield sock, proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+
+
+def ask(sock: socket.socket, line: str) -> Tuple[Status, str]:
+    reply = psi_ask(sock, line)
+    return reply.status, reply.value or ""
+
+
+def ok(sock: socket.socket, *lines: str) -> None:
+    for line in lines:
+        assert ask(sock, line)[0] is Status.ACK, line
+
+
+class Sampler:
+    """Both drives' positions and states, every few ms, from the simulated slaves."""
+
+    def __init__(self, sim: object) -> None:
+        import threading
+
+        self.drives = list(sim.drives)  # type: ignore[attr-defined]
+        self.seen: List[Sample] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def now(self) -> Sample:
+        values = []
+        for d in self.drives:
+            with d.lock:
+                d.drive.sync()
+                values.append((d.drive.now, d.drive.position, d.drive.state))
+        return (values[0][0], values[0][1], values[1][1], values[0][2], values[1][2])
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.seen.append(self.now())
+            time.sleep(0.004)
+
+    def close(self) -> List[Sample]:
+        self._stop.set()
+        self._thread.join(5)
+        return self.seen
+
+
+def velocities(seen: List[Sample], which: int, span: float = 0.03) -> List[Tuple[float, float]]:
+    out, start = [], seen[0]
+    for s in seen[1:]:
+        if s[0] - start[0] >= span:
+            out.append((s[0], (s[which] - start[which]) / (s[0] - start[0])))
+            start = s
+    return out
+
+
+def largest_change(v: List[Tuple[float, float]]) -> float:
+    return max(abs(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(v, v[1:]))
+
+
+def enable_and_aim(sock: socket.socket) -> None:
+    ok(sock, "1S04=1", "2S04=1", "1S02=40", "2S02=-16")  # LINR: each axis by its own 02
+
+
+def test_linr_moves_both_slaves_along_one_line(server: Tuple[object, str], bridge) -> None:
+    sock, _ = bridge
+    enable_and_aim(sock)
+    sampler = Sampler(server[0])
+    start = sampler.now()
+    ok(sock, "1S90=1")
+    wait_until(lambda: ask(sock, "1R82")[1] == "1" and ask(sock, "2R82")[1] == "1", 60,
+               "the line did not end in target")
+    seen = sampler.close()
+    targets = (start[1] + 40 * FACTOR, start[2] - 16 * FACTOR)
+    assert sampler.now()[1:3] == targets  # both exactly on their targets
+    moving = [s for s in seen if s[1:3] != start[1:3]]
+    assert len(moving) > 50, "too few samples during the move"
+    worst = max(abs((s[1] - start[1]) / (40 * FACTOR) - (s[2] - start[2]) / (-16 * FACTOR))
+                for s in moving)
+    assert worst <= 0.02, f"progress fractions differ by {worst:.3f}"
+    # the controlword stayed the enable's: both still OPERATION ENABLED after the line
+    assert seen[-1][3] is State.OPERATION_ENABLED and seen[-1][4] is State.OPERATION_ENABLED
+
+
+def test_s00_8_mid_move_ramps_down_without_a_step(server: Tuple[object, str], bridge) -> None:
+    sock, _ = bridge
+    enable_and_aim(sock)
+    sampler = Sampler(server[0])
+    start = sampler.now()
+    ok(sock, "1S90=1")
+    wait_until(lambda: sampler.now()[1] - start[1] > 15 * FACTOR, 60, "never got going")
+    at_stop = sampler.now()
+    ok(sock, "1S00=8")
+    wait_until(lambda: ask(sock, "1R82")[1] == "1", 60, "the stop did not end")
+    time.sleep(0.1)
+    seen = sampler.close()
+    rest = seen[-1]
+    assert rest[1] - start[1] < 40 * FACTOR  # short of the target ...
+    assert rest[1] - at_stop[1] > 1.5 * FACTOR  # ... after braking at 28 (2.5 mm), not at once
+    v = velocities([s for s in seen if s[0] >= at_stop[0] - 0.1], 1)
+    assert largest_change(v) < 3 * STOP * FACTOR, v  # a step would be ~670000 inc/s^2
+    fractions = ((rest[1] - start[1]) / 40, (rest[2] - start[2]) / -16)
+    assert abs(fractions[0] - fractions[1]) <= 0.02 * FACTOR  # stopped together, on the line
+    assert rest[3] is State.OPERATION_ENABLED and rest[4] is State.OPERATION_ENABLED
+
+
+def test_a_killed_bridge_ends_in_the_sm_watchdog_reaction_not_a_jump(
+        server: Tuple[object, str], bridge) -> None:
+    sim = server[0]
+    sock, proc = bridge
+    for d in sim.drives:  # type: ignore[attr-defined]
+        with d.lock:  # the drives' own limits (a CSP drive follows at 60C5h, stops at 6085h)
+            d.store.write(0x60C5, 0, (1500).to_bytes(4, "little"))  # 50000 inc/s^2
+            d.store.write(0x6085, 0, (3000).to_bytes(4, "little"))  # 100000 inc/s^2
+    reactions = [d.watchdog_reactions for d in sim.drives]  # type: ignore[attr-defined]
+    enable_and_aim(sock)
+    sampler = Sampler(sim)
+    start = sampler.now()
+    ok(sock, "1S90=1")
+    wait_until(lambda: sampler.now()[1] - start[1] > 15 * FACTOR, 60, "never got going")
+    proc.send_signal(signal.SIGKILL)  # no clean shutdown: the process data just stop
+    proc.wait(30)
+    killed = sampler.now()
+    wait_until(lambda: all(d.watchdog_reactions > r for d, r in
+                           zip(sim.drives, reactions)), 10,  # type: ignore[attr-defined]
+               "the SM watchdog never tripped")
+    wait_until(lambda: len(sampler.seen) > 2 and sampler.seen[-1][1:3] == sampler.seen[-3][1:3],
+               10, "the drives never came to rest")
+    time.sleep(0.1)
+    seen = sampler.close()
+    from epos_link.simulator.ethercat.esc import AL_STATUS, AL_STATUS_CODE
+    for d in sim.drives:  # type: ignore[attr-defined]
+        with sim.lock:  # type: ignore[attr-defined]
+            al, code = d.slave.esc.u16(AL_STATUS), d.slave.esc.u16(AL_STATUS_CODE)
+        assert al & 0x0F == 0x04 and code == 0x001B, (hex(al), hex(code))  # SAFE-OP, SM watchdog
+    states = {s[3] for s in seen if s[0] > killed[0]} | {s[4] for s in seen if s[0] > killed[0]}
+    assert State.QUICK_STOP_ACTIVE in states  # 6007h = 3, maxon's default
+    for which in (1, 2):
+        v = velocities([s for s in seen if s[0] >= killed[0] - 0.1], which)
+        assert largest_change(v) < 3 * 100_000, v  # the drive's own ramps, never a step
+    assert seen[-1][1] - killed[1] > 0  # it went on a little, braking
+    assert seen[-1][1] - start[1] < 40 * FACTOR  # and did not run to the target
