@@ -145,6 +145,22 @@ def test_lina_brings_both_axes_to_zero_together(engine: Engine) -> None:
     assert ask(engine, "1R12")[1] == "0" and ask(engine, "2R12")[1] == "0"
 
 
+def test_a_new_02_after_a_cyclic_move_is_taken_by_the_next_line(engine: Engine) -> None:
+    """02 of a cyclic axis is the bridge's (plan.axis.BRIDGE_PROFILE): once the drive is in
+    CSP, 607Ah is the stream's, and an S02 written there would be refused."""
+    enable_both(engine)
+    assert ask(engine, "1S02=6")[0] is Status.ACK and ask(engine, "2S02=3")[0] is Status.ACK
+    assert ask(engine, "1S90=1")[0] is Status.ACK
+    wait_until(lambda: ask(engine, "1R82")[1] == "1" and ask(engine, "2R82")[1] == "1", 30,
+               "first line did not end")
+    assert ask(engine, "1S02=-2")[0] is Status.ACK and ask(engine, "2S02=-1")[0] is Status.ACK
+    assert ask(engine, "1R02")[1] == "-2"
+    assert ask(engine, "1S90=1")[0] is Status.ACK
+    wait_until(lambda: ask(engine, "1R82")[1] == "1" and ask(engine, "2R82")[1] == "1", 30,
+               "second line did not end")
+    assert ask(engine, "1R12")[1] == "4" and ask(engine, "2R12")[1] == "2"
+
+
 # -- S00=8 and S04=0: ramp down ------------------------------------------------------------------
 
 

@@ -7,8 +7,9 @@ position 607Ah as it comes, so the bridge computes the profile
 through the bus's process data. The transport is an interface,
 :class:`Setpoints`: the ``canopen`` backend implements it with RPDO3
 remapped to 607Ah alone (:class:`CanopenSetpoints` says why no controlword);
-an EtherCAT backend implements the same three methods with its process data,
-whose controlword must likewise be left as the bridge's SDO writes set it.
+the ``ethercat`` backend with its process data, its controlword likewise left
+as the bridge's SDO writes set it, and with the cycle itself as this loop
+(:mod:`tcp_bridge.backends.ethercat_csp`).
 
 The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
 
@@ -33,7 +34,8 @@ The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
   task: a set-point thread that stalls (blocked in a bus call) or ends stops
   the heartbeat too, so the drives react even while the process lives. A
   drive's own CSP watchdog (e.g. a sync or PDO timeout) is drive specific and
-  not set up by the bridge.
+  not set up by the bridge. On EtherCAT it is each slave's SM watchdog instead
+  (:mod:`tcp_bridge.backends.ethercat_csp`): no heartbeat there.
 
 Timing: the thread keeps an absolute schedule (``next += cycle``); a cycle that
 comes late samples the profile at the real time, so a late set-point is the
