@@ -5,7 +5,7 @@
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
                      [--max-per-host 32] [--http HOST:PORT]
-    tcp-bridge serve --simulate [--axes N] [--can-server HOST:PORT]
+    tcp-bridge serve --simulate [--axes N] [--can-server HOST:PORT] [--ethercat N]
     tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
     tcp-bridge --version
@@ -20,6 +20,12 @@ requests, each printed with its own reply, as the gateway reads it (spec 2.2.1:
 one request per CR-terminated line). ``serve`` stops on SIGINT or SIGTERM, finishing the transfers in
 flight; a second signal exits at once (status 128 + signal number), waiting
 at most a second for the state file.
+
+``serve --simulate --ethercat N`` adds N simulated EPOS4 EtherCAT slaves on a
+veth pair (:mod:`tcp_bridge.backends.ethercat_sim`), axes after the CAN ones;
+where the machine does not allow it (root, iproute2, pysoem) it prints why and
+exits 2, since it was asked for. The slaves stop and the pair is deleted on
+every exit, the second signal's included.
 """
 from __future__ import annotations
 
@@ -136,7 +142,10 @@ def _table(args: argparse.Namespace) -> AxisTable:
             options["baud"] = args.sim_baud
         if args.can_server:
             options["can_server"] = args.can_server
-        table = simulated_table(args.axes, bus_options=options)
+        sim = getattr(args, "ethercat_sim", None)
+        table = simulated_table(args.axes, bus_options=options,
+                                ethercat_interface=sim.interface if sim else None,
+                                ethercat_slaves=sim.slaves if sim else 0)
     else:
         if args.can_server:
             raise ConfigError("--can-server serves the simulated CAN bus: it needs --simulate")
@@ -212,6 +221,9 @@ async def _serve(args: argparse.Namespace) -> int:
         print(f"{PROG}: second signal; exiting now, transfers in flight are abandoned",
               file=sys.stderr, flush=True)
         engine.params.flush(1.0)
+        sim = getattr(args, "ethercat_sim", None)
+        if sim is not None:  # os._exit skips main's finally: no slaves or veth left behind
+            sim.close(timeout=1.0)
         os._exit(128 + signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -230,6 +242,10 @@ async def _serve(args: argparse.Namespace) -> int:
         if served is not None:
             print(f"{PROG}: CAN bus served over socketcand at {served.url} "
                   f"(channel {served.bus_name})", flush=True)
+    sim = getattr(args, "ethercat_sim", None)
+    if sim is not None:
+        print(f"{PROG}: {sim.slaves} simulated EtherCAT slave(s) on veth {sim.peer}, "
+              f"the master on {sim.interface}", flush=True)
     status = None
     if args.http is not None:  # the live status page (tcp_bridge.status)
         from .status.http import open_status_page
@@ -345,6 +361,9 @@ def parser() -> argparse.ArgumentParser:
                    help="with --simulate: also serve the simulated CAN bus over the socketcand "
                         "protocol (python-can interface socketcand, channel can0); port 0 "
                         "picks one")
+    s.add_argument("--ethercat", type=positive_int, metavar="N",
+                   help="with --simulate: also N simulated EPOS4 EtherCAT slaves on a veth "
+                        "pair, axes after the CAN ones (needs root, iproute2 and pysoem)")
     s.add_argument("--sim-link", choices=["inprocess", "pty"], help=argparse.SUPPRESS)
     s.add_argument("--sim-baud", type=int, help=argparse.SUPPRESS)
     s.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
@@ -424,12 +443,25 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # At -v its INFO lines would drown the bridge's (147 of 152 at start-up,
         # the simulated drives' SDO server among them): they come at -vv.
         logging.getLogger("canopen").setLevel(logging.CRITICAL)
+    sim = None
+    if args.ethercat is not None:
+        from .backends.ethercat_sim import start
+
+        if not args.simulate:
+            return _fail("--ethercat adds simulated EtherCAT slaves: it needs --simulate")
+        try:
+            sim = args.ethercat_sim = start(args.ethercat)
+        except RuntimeError as exc:
+            return _fail(f"--ethercat {exc}")
     try:
         return asyncio.run(_serve(args))
     except (ConfigError, BridgeError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:  # a second Ctrl-C during shutdown
         return 130
+    finally:
+        if sim is not None:  # after the engine closed: the axes stopped, then the slaves
+            sim.close()
 
 
 if __name__ == "__main__":  # pragma: no cover

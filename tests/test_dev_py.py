@@ -36,6 +36,7 @@ dev = load_dev()
     (["--config", "axes.toml"], False),
     (["--config=axes.toml", "--port", "0"], False),
     (["--simulate", "--axes", "2"], False),  # given once by the user, not twice
+    (["--ethercat", "2"], True),  # simulated EtherCAT slaves too: passed through
 ])
 def test_simulate_only_without_a_source_of_axes(args: List[str], simulate: bool) -> None:
     cmd = dev.bridge_command(args)

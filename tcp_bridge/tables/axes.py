@@ -300,23 +300,39 @@ def _validate_cyclic(table: AxisTable) -> None:
 
 
 def simulated_table(count: int = 1, *, state_file: Optional[Path] = None,
-                    bus_options: Optional[Mapping[str, Any]] = None) -> AxisTable:
+                    bus_options: Optional[Mapping[str, Any]] = None,
+                    ethercat_interface: Optional[str] = None,
+                    ethercat_slaves: int = 0) -> AxisTable:
     """``count`` simulated EPOS4 drives: node 1 is the gateway itself, 2..count behind it.
 
     Position factor 1000: the simulator counts increments, so user units are
     mm at 1000 inc/mm. ``increments_per_revolution`` is the simulated encoder's
     (3000h/05h of the simulator's object dictionary).
+
+    With ``ethercat_slaves`` N and the master's ``ethercat_interface``
+    (:mod:`tcp_bridge.backends.ethercat_sim`): N more axes, AxAddr count+1..count+N,
+    on bus ``ethercat`` (bus offset 1000000, spec 3.3), node id = slave position 1..N.
     """
     if not 1 <= count <= MAX_AXIS:
         raise ConfigError(f"--axes must be 1..{MAX_AXIS}, not {count}")
+    if ethercat_slaves and count + ethercat_slaves > MAX_AXIS:
+        raise ConfigError(f"--axes {count} and --ethercat {ethercat_slaves} make "
+                          f"{count + ethercat_slaves} axes; at most {MAX_AXIS} (spec 3)")
     ipr = simulated_increments_per_revolution()
     axes = {
         n: AxisConfig(n, DeviceCode.C_DC_MAXON_EPOS4, False, BusOffset.CAN1, n, 1000,
                       MappingProxyType({}), ipr)
         for n in range(1, count + 1)
     }
-    bus = BusConfig("can1", "sim", MappingProxyType(dict(bus_options or {})))
-    return AxisTable(MappingProxyType(axes), MappingProxyType({"can1": bus}),
+    buses = {"can1": BusConfig("can1", "sim", MappingProxyType(dict(bus_options or {})))}
+    if ethercat_slaves:
+        for slave in range(1, ethercat_slaves + 1):
+            axes[count + slave] = AxisConfig(count + slave, DeviceCode.C_DC_MAXON_EPOS4, False,
+                                             BusOffset.ETHERCAT, slave, 1000,
+                                             MappingProxyType({}), ipr)
+        buses["ethercat"] = BusConfig("ethercat", "ethercat", MappingProxyType(
+            {"interface": ethercat_interface, "cycle_ms": 4}))
+    return AxisTable(MappingProxyType(axes), MappingProxyType(buses),
                      Settings(state_file=state_file))
 
 
