@@ -160,6 +160,8 @@ class Line:
         if rate <= 0.0:  # not moving yet (or any more): rest where it is
             return Line(self.starts, self.ends, Ramp((), t, s), self.stop_rate)
         remaining = self.ramp.final - s
+        if remaining <= 0.0:  # at the end within rounding: rest on the targets
+            return Line(self.starts, self.ends, Ramp((), t, self.ramp.final), self.stop_rate)
         decel = self.stop_rate
         if rate * rate / (2 * decel) > remaining:
             decel = rate * rate / (2 * remaining)  # brake just enough to stop at the target
