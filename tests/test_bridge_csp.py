@@ -291,8 +291,8 @@ def test_a_cyclic_axis_on_a_bus_without_process_data_is_refused() -> None:
 
 def test_what_a_cyclic_axis_cannot_do_is_refused_before_anything_moves(engine: Engine) -> None:
     enable_both(engine)
-    with pytest.raises(InvalidCommand, match="S00=3 is not available"):  # CAN: no CSV yet
-        ask(engine, "1S00=3")
+    with pytest.raises(InvalidCommand, match="S00=9 is not available"):  # no homing
+        ask(engine, "1S00=9")
     with pytest.raises(InvalidCommand, match="no target position"):  # LINR without 02
         ask(engine, "1S90=1")
     assert ask(engine, "1S05=0")[0] is Status.ACK  # no velocity left (26 unset either)

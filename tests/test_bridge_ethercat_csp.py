@@ -206,6 +206,37 @@ def test_s00_8_mid_move_ramps_down_without_a_step(server: Tuple[object, str], br
     assert rest[3] is State.OPERATION_ENABLED and rest[4] is State.OPERATION_ENABLED
 
 
+def test_s00_3_then_s00_8_is_a_velocity_move_in_csv(server: Tuple[object, str], bridge) -> None:
+    """S00=3 on slave 1: mode 9, 60FFh ramped to 05 in the outputs; S00=8 ramps it down
+    at 28 (20 mm/s at 80 mm/s^2: 2.5 mm), never a step; the drive stays enabled."""
+    sock, _ = bridge
+    ok(sock, "1S04=1")
+    sampler = Sampler(server[0])
+    cruise = VELOCITY * FACTOR
+
+    def speed() -> float:
+        a = sampler.now()
+        time.sleep(0.05)
+        b = sampler.now()
+        return (b[1] - a[1]) / (b[0] - a[0])
+    ok(sock, "1S00=3")
+    wait_until(lambda: abs(speed() - cruise) < 0.03 * cruise, 60, "never reached 05")
+    drive = server[0].drives[0]  # type: ignore[attr-defined]
+    with drive.lock:
+        assert int(drive.drive.mode) == 9
+    assert ask(sock, "1R82")[1] == "0"  # running at 05: not at rest
+    at_stop = sampler.now()
+    ok(sock, "1S00=8")
+    wait_until(lambda: ask(sock, "1R82")[1] == "1", 60, "the ramp down did not end")
+    time.sleep(0.1)
+    seen = sampler.close()
+    rest = seen[-1]
+    assert rest[1] - at_stop[1] > 1.5 * FACTOR  # braked at 28, not at once
+    v = velocities(seen, 1)
+    assert largest_change(v) < 3 * STOP * FACTOR, v  # a step would be ~670000 inc/s^2
+    assert rest[3] is State.OPERATION_ENABLED
+
+
 def test_a_killed_bridge_ends_in_the_sm_watchdog_reaction_not_a_jump(
         server: Tuple[object, str], bridge) -> None:
     sim = server[0]

@@ -13,6 +13,7 @@ from tcp_bridge.errors import DeviceFailure
 from tcp_bridge.motion.profile import AxisLimits, plan_line
 
 CW, TARGET = pdo.Entry(0x6040, 0, 0, 2), pdo.Entry(0x607A, 0, 2, 4)
+VELOCITY = pdo.Entry(0x60FF, 0, 6, 4)
 ACTUAL = pdo.Entry(0x6064, 0, 0, 4)
 
 
@@ -35,11 +36,15 @@ class FakeCycle:
 
 class FakeNode:
     def __init__(self) -> None:
-        self.outputs = bytearray(6)
+        self.outputs = bytearray(10)
         self.inputs = (1234).to_bytes(4, "little", signed=True)
 
     def cyclic_target(self, position: int) -> None:
         pdo.put(self.outputs, TARGET, position.to_bytes(4, "little", signed=True))
+
+    def pdo_write(self, index: int, subindex: int, value: int) -> None:
+        entry = {(0x607A, 0): TARGET, (0x60FF, 0): VELOCITY}[(index, subindex)]
+        pdo.put(self.outputs, entry, value.to_bytes(4, "little", signed=True))
 
     def pdo_read(self, index: int, subindex: int = 0) -> int:
         return pdo.get(self.inputs, ACTUAL, True)
@@ -49,9 +54,10 @@ class FakeBackend:
     interface = "veth0"
 
     def __init__(self, with_target: bool = True) -> None:
-        outputs = {(0x6040, 0): CW, **({(0x607A, 0): TARGET} if with_target else {})}
+        outputs = {(0x6040, 0): CW,
+                   **({(0x607A, 0): TARGET, (0x60FF, 0): VELOCITY} if with_target else {})}
         self.layouts: Dict[int, Optional[pdo.Layout]] = {
-            1: pdo.Layout(outputs, {(0x6064, 0): ACTUAL}, 6, 4), 2: None}
+            1: pdo.Layout(outputs, {(0x6064, 0): ACTUAL}, 10, 4), 2: None}
         self.cycle = FakeCycle()
         self.nodes = {1: FakeNode()}
 
@@ -75,6 +81,23 @@ def test_write_targets_leaves_the_controlword_alone() -> None:
     assert node.outputs[0:2] == (0x000F).to_bytes(2, "little")
     assert int.from_bytes(node.outputs[2:6], "little", signed=True) == -5000
     assert EthercatSetpoints(backend).read_actual([1]) == {1: 1234}
+
+
+def test_velocity_set_points_are_60ffh_alone() -> None:
+    """CSV (S00=3): prepare_velocity wants 60FFh in the outputs; write_velocities puts
+    60FFh there and leaves the controlword and 607Ah alone."""
+    EthercatSetpoints(FakeBackend()).prepare_velocity(1)
+    with pytest.raises(DeviceFailure, match="60FFh is not mapped"):
+        EthercatSetpoints(FakeBackend(with_target=False)).prepare_velocity(1)
+    backend = FakeBackend()
+    node = backend.nodes[1]
+    node.outputs[0:6] = (0x000F).to_bytes(2, "little") + (777).to_bytes(4, "little")
+    EthercatSetpoints(backend).write_velocities({1: -321})
+    assert node.outputs[0:6] == (0x000F).to_bytes(2, "little") + (777).to_bytes(4, "little")
+    assert int.from_bytes(node.outputs[6:10], "little", signed=True) == -321
+    backend.cycle.link_down = True
+    with pytest.raises(DeviceFailure, match="no EtherCAT frame"):
+        EthercatSetpoints(backend).write_velocities({1: 1})
 
 
 def test_a_lost_slave_or_a_dark_link_refuses_the_set_points() -> None:

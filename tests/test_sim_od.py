@@ -86,7 +86,7 @@ def test_eds_identity_values() -> None:
     assert s.read_value(0x1008) == "EPOS4"
     assert s.read_value(0x1018, 1) == 0x000000FB  # maxon motor's vendor id
     assert s.read_value(0x1018, 0) == 4
-    assert s.read_value(0x6502) == 0xA5  # pp, pv, hm, csp (CiA 402-2 6502h bits 0, 2, 5, 7)
+    assert s.read_value(0x6502) == 0x1A5  # pp, pv, hm, csp, csv (CiA 402-2 6502h bits 0, 2, 5, 7, 8)
 
 
 def test_eds_node_id_substitution() -> None:

@@ -30,6 +30,9 @@ What is modelled (CiA 402-2 V4.0 sections in brackets), in EPOS4 units
   Parker SLVD-N 13.1.11.2, Nanotec N5 "Cyclic Synchronous Position");
   statusword bit 10 reserved (0), bit 12 "drive follows the command value",
   bit 13 following error. See :mod:`~epos_link.simulator.kinematics`;
+* cyclic synchronous velocity mode 9 (csv): in OPERATION ENABLED 60FFh is the
+  velocity demand at once (within 60C5h), halt not evaluated; statusword bit
+  10 reserved (0), bit 12 "drive follows the command value", bit 13 reserved;
 * trapezoidal profiles in closed form (:mod:`~epos_link.simulator.motion`),
   velocity 6081h <= 607Fh, 6080h, accelerations 6083h/6084h/6085h <= 60C5h,
   planned in :mod:`~epos_link.simulator.kinematics` (which ramp for which state);

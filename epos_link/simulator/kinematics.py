@@ -22,6 +22,12 @@ demand at once. A real csp drive has no trajectory generator and expects a
 new set-point every sync period; the simulator, **chosen**, lets its position
 loop follow a set-point (even a jump) at the drive's maxima, 607Fh/6080h and
 60C5h, instead of tripping a following error, clamped to 607Dh like a pp target.
+
+Cyclic synchronous velocity (csv, mode 9): the master's 60FFh is the velocity
+demand at once, halt not evaluated (CiA 402-2 csv uses no mode specific bits of
+the controlword). **Chosen**, as for csp: the velocity loop follows a new
+set-point (even a step) within the drive's acceleration limit 60C5h, limited to
+607Fh/6080h (sw bit 11 while limited); passing 607Dh raises 8A82h as in pv.
 """
 from __future__ import annotations
 
@@ -95,6 +101,8 @@ class Kinematics(Monitors):
             return False
         if self._mode is Mode.CYCLIC_SYNC_POSITION:  # halt is not evaluated in csp
             return self._target is not None and not self._target_reached
+        if self._mode is Mode.CYCLIC_SYNC_VELOCITY:  # nor in csv
+            return self._csv_goal()[0] != 0.0
         if self._cw & CW.HALT:
             return False
         if self._mode is Mode.PROFILE_POSITION:
@@ -174,6 +182,15 @@ class Kinematics(Monitors):
         goal = min(max(vt, -v_max), v_max)
         return self.units.velocity_to_inc_s(goal), goal != vt
 
+    def _csv_goal(self) -> tuple[float, bool]:
+        """csv: 60FFh (limited to 607Fh/6080h) in inc/s, whether it was limited; halt ignored."""
+        if self._state is not State.OPERATION_ENABLED or self._pending is not None:
+            return 0.0, False
+        v_max = min(self.store.get_int(0x607F), self.store.get_int(0x6080))
+        vt = self.store.get_int(0x60FF)
+        goal = min(max(vt, -v_max), v_max)
+        return self.units.velocity_to_inc_s(goal), goal != vt
+
     def _plan(self) -> None:
         """Replace the motion profile by the one the current state and mode call for."""
         t = self._now
@@ -197,6 +214,10 @@ class Kinematics(Monitors):
                 assert self._target is not None
                 v_csp, a_max = self._csp_limits(u)
                 self._profile = plan_position(t, p, v, self._target, v_csp, a_max, a_max)
+            elif self._mode is Mode.CYCLIC_SYNC_VELOCITY:
+                goal, self._clamped = self._csv_goal()
+                a_max = self._csp_limits(u)[1]
+                self._profile = plan_velocity(t, p, v, goal, a_max, a_max)
             elif halted:
                 self._profile = plan_stop(t, p, v, qs_dec if self.store.get_int(0x605D) == 2 else dec)
             elif self._mode is Mode.PROFILE_POSITION and self._target is not None \

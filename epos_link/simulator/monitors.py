@@ -20,10 +20,10 @@ re-plans from the actual position, at rest). With the power stage off the
 position loop is not running: 6062h reads the actual position.
 
 =====================  ====================================================================
-software position      pv, OPERATION ENABLED, 607Dh min < max: where the actual position
+software position      pv, csv, OPERATION ENABLED, 607Dh min < max: where the actual position
 limit (8A82h)          passes a limit moving outwards, the fault "software position limit
                        error" (EPOS4 error table, Firmware Specification 7.2 as public
-                       EPOS4 code transcribes it: reaction = 605Eh). **Chosen**: only pv
+                       EPOS4 code transcribes it: reaction = 605Eh). **Chosen**: only pv/csv
                        (pp and csp targets are clamped to 607Dh, homing references the
                        axis); an axis already beyond a limit faults once it moves further.
 following error        pp, homing, csp, OPERATION ENABLED: |6062h - 6064h| > 6065h
@@ -31,8 +31,8 @@ following error        pp, homing, csp, OPERATION ENABLED: |6062h - 6064h| > 606
                        time out" ms (CiA 402-2 6065h/6066h) raises 8611h; statusword bit
                        13 in pp/csp, homing error in homing. 6065h = FFFFFFFFh switches
                        the monitor off (CiA 402-2 6065h). **Chosen**: 6066h defaults to 0
-                       (at once): our sources give no EPOS4 value; pv (a velocity loop)
-                       is not monitored.
+                       (at once): our sources give no EPOS4 value; pv and csv (velocity
+                       loops) are not monitored.
 position window        pp: target reached (bit 10) once the demand has reached the
                        target and |607Ah - 6064h| <= 6067h "position window" has held for
                        6068h "position window time" ms (CiA 402-2 6067h/6068h); 6067h =
@@ -133,7 +133,8 @@ class Monitors:
     # -- software position limits ----------------------------------------------------------
 
     def _limit_event(self, horizon: float) -> Event | None:
-        if self._state is not State.OPERATION_ENABLED or self._mode is not Mode.PROFILE_VELOCITY:
+        if self._state is not State.OPERATION_ENABLED \
+                or self._mode not in (Mode.PROFILE_VELOCITY, Mode.CYCLIC_SYNC_VELOCITY):
             return None
         limits = self._software_limits()
         if limits is None or self._blocked_at is not None:  # a blocked axis passes nothing

@@ -12,7 +12,7 @@ EPOS4 has on top of them, as hooks on the store:
                once in cyclic synchronous position mode (8)
 3000h:05       main sensor resolution = 4 x 3010h:01 (read-only, see units)
 6040h, 6060h,  handed to the drive model (controlword, mode, target velocity);
-60FFh          6060h refuses modes outside 6502h with 06090030h
+60FFh          (followed at once in csv, mode 9); 6060h refuses modes outside 6502h with 06090030h
 60A9h          SI unit velocity: rpm with a prefix 10^0..10^-3, else 06090030h
 3010h:01       encoder pulses: the drive re-plans in the new units
 6098h          homing method: only maxon's methods (homing.py), else 06090030h
@@ -36,14 +36,15 @@ __all__ = ["Mode", "install_object_rules"]
 
 
 class Mode(IntEnum):
-    """Supported modes of operation, 6060h (CiA 402-2 6.3.1); 6502h = 0xA5
-    (bits 0 pp, 2 pv, 5 hm, 7 csp). An EPOS4 also has csv (9) and cst (10),
-    which the simulator does not model: 6060h refuses them."""
+    """Supported modes of operation, 6060h (CiA 402-2 6.3.1); 6502h = 0x1A5
+    (bits 0 pp, 2 pv, 5 hm, 7 csp, 8 csv). An EPOS4 also has cst (10), which
+    the simulator does not model: 6060h refuses it."""
 
     PROFILE_POSITION = 1
     PROFILE_VELOCITY = 3
     HOMING = 6
     CYCLIC_SYNC_POSITION = 8
+    CYCLIC_SYNC_VELOCITY = 9
 
 
 class DriveModel(Protocol):

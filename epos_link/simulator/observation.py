@@ -3,7 +3,7 @@ the rest of :class:`~epos_link.simulator.drive.Drive`'s read-only view.
 
 Part of :class:`~epos_link.simulator.drive.Drive` (a mixin, for the size of
 the module only). The statusword follows CiA 402-2 6.4.1.4 and the mode
-specific bits of 6.6 (homing), 6.7 (pp), 6.9 (pv) and csp; the choices about
+specific bits of 6.6 (homing), 6.7 (pp), 6.9 (pv), csp and csv; the choices about
 its bits are listed in :mod:`~epos_link.simulator.drive`.
 """
 from __future__ import annotations
@@ -172,6 +172,10 @@ class Observation:
             # the input of the position loop), 13 following error.
             bit12 = st is State.OPERATION_ENABLED and self._pending is None
             bit13 = self._following_error
+        elif self._mode is Mode.CYCLIC_SYNC_VELOCITY:
+            # csv: bit 10 reserved, 12 "drive follows the command value" (60FFh is
+            # the input of the velocity loop), 13 reserved (no following error in csv).
+            bit12 = st is State.OPERATION_ENABLED and self._pending is None
         else:  # homing, CiA 402-2 6.6 table: bits 13/12/10
             status = self._homing_status
             bit13 = status is HomingStatus.ERROR

@@ -130,9 +130,9 @@ def _own_serial_number(od: ObjectDictionary, node_id: int) -> None:
 # needs them, so the CiA 402 ones are added here (CiA 402 6060h, 605Ah).
 VALUE_DESCRIPTIONS: dict[int, dict[int, str]] = {
     0x6060: {1: "Profile Position Mode", 3: "Profile Velocity Mode", 6: "Homing Mode",
-             8: "Cyclic Synchronous Position Mode"},
+             8: "Cyclic Synchronous Position Mode", 9: "Cyclic Synchronous Velocity Mode"},
     0x6061: {1: "Profile Position Mode", 3: "Profile Velocity Mode", 6: "Homing Mode",
-             8: "Cyclic Synchronous Position Mode"},
+             8: "Cyclic Synchronous Position Mode", 9: "Cyclic Synchronous Velocity Mode"},
     0x605A: {0: "Disable drive function", 1: "Slow down on slow down ramp",
              2: "Slow down on quick stop ramp", 5: "Slow down on slow down ramp and stay",
              6: "Slow down on quick stop ramp and stay"},

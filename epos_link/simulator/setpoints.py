@@ -85,10 +85,14 @@ class SetPoints:
             self._run_until(self._now)
 
     def on_target_velocity(self, value: Value) -> None:
+        """60FFh: the pv target (ramped on 6083h/6084h); in csv, followed at once."""
         self.store.set(0x60FF, 0, value)
-        if self._mode is Mode.PROFILE_VELOCITY and self._state is State.OPERATION_ENABLED:
+        if self._mode in (Mode.PROFILE_VELOCITY, Mode.CYCLIC_SYNC_VELOCITY) \
+                and self._state is State.OPERATION_ENABLED:
             self._plan()
             self._track_goal("target velocity")
+            if self._mode is Mode.CYCLIC_SYNC_VELOCITY:
+                self._run_until(self._now)
 
     def _accept_set_point(self, cw: int) -> None:
         """Profile position set-point on a rising edge of cw bit 4 (CiA 402-2 6.7.1)."""

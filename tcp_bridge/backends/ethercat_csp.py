@@ -40,6 +40,7 @@ from ..motion.cyclic import CyclicSender
 log = logging.getLogger("tcp_bridge.motion")
 
 TARGET_POSITION = 0x607A
+TARGET_VELOCITY = 0x60FF
 POSITION_ACTUAL = 0x6064
 
 
@@ -59,16 +60,31 @@ class EthercatSetpoints:
             raise DeviceFailure(f"slave {node}: the target position 607Ah is not mapped in its "
                                 "outputs (RxPDO, 1C12h); CSP needs it in the process data")
 
-    def write_targets(self, targets: Mapping[int, int]) -> None:
+    def prepare_velocity(self, node: int) -> None:
+        """CSV: 60FFh must be in the slave's outputs (the EPOS4's factory mapping has it)."""
+        layout = self.backend.layouts.get(node)
+        if layout is None or (TARGET_VELOCITY, 0) not in layout.outputs:
+            raise DeviceFailure(f"slave {node}: the target velocity 60FFh is not mapped in its "
+                                "outputs (RxPDO, 1C12h); CSV needs it in the process data")
+
+    def _check(self, nodes: Iterable[int]) -> None:
         cycle = self.backend.cycle
         if cycle.link_down:
             raise DeviceFailure(f"no EtherCAT frame comes back on {self.backend.interface}")
-        for node in targets:
+        for node in nodes:
             why = cycle.lost.get(node)
             if why is not None:
                 raise DeviceFailure(why)
+
+    def write_targets(self, targets: Mapping[int, int]) -> None:
+        self._check(targets)
         for node, position in targets.items():
             self.backend.node(node).cyclic_target(position)  # 607Ah only, never 6040h
+
+    def write_velocities(self, velocities: Mapping[int, int]) -> None:
+        self._check(velocities)
+        for node, velocity in velocities.items():
+            self.backend.node(node).pdo_write(TARGET_VELOCITY, 0, velocity)  # 60FFh only
 
     def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
         out: Dict[int, int] = {}

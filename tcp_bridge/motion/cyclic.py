@@ -14,7 +14,7 @@ as the bridge's SDO writes set it, and with the cycle itself as this loop
 The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
 
 * **Motion only on a move command**: the thread sends only while a run is
-  active, and a run starts only from a move (S90, S00=1/2). Before it, on
+  active, and a run starts only from a move (S90, S00=1/2, S00=3). Before it, on
   the bus worker (:func:`tcp_bridge.plan.cyclic_moves`), the drive gets mode
   8 with 607Ah equal to its actual position, so entering CSP moves nothing,
   and the run's first sample is that same position: no jump.
@@ -37,6 +37,13 @@ The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
   not set up by the bridge. On EtherCAT it is each slave's SM watchdog instead
   (:mod:`tcp_bridge.backends.ethercat_csp`): no heartbeat there.
 
+Velocity moves (S00=3) of such an axis run in cyclic synchronous velocity mode
+(CSV, mode 9) by the same rules: the run is a :class:`.profile.VelocityRamp`
+and each cycle sends its target velocity 60FFh (:meth:`Setpoints.write_velocities`;
+on CAN RPDO4 remapped to 60FFh alone), again never the controlword. Before it
+the drive gets 60FFh = its actual velocity, then mode 9, so entering CSV moves
+nothing; the ramp starts from that velocity.
+
 Timing: the thread keeps an absolute schedule (``next += cycle``); a cycle that
 comes late samples the profile at the real time, so a late set-point is the
 right one for its moment, and cycles missed are skipped, not sent in a burst.
@@ -47,14 +54,15 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Protocol, Tuple
+from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Protocol, Tuple, Union
 
 from ..errors import DeviceFailure
-from .profile import Line
+from .profile import Line, VelocityRamp
 
 log = logging.getLogger("tcp_bridge.motion")
 
 CSP_MODE = 8  # CiA 402-2 6060h: cyclic synchronous position mode
+CSV_MODE = 9  # cyclic synchronous velocity mode
 
 
 class Setpoints(Protocol):
@@ -69,13 +77,19 @@ class Setpoints(Protocol):
     def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
         """The actual position (6064h) of each node; bus worker only."""
 
+    def prepare_velocity(self, node: int) -> None:
+        """Before a node's first velocity run (CSV): map its target velocity 60FFh."""
+
+    def write_velocities(self, velocities: Mapping[int, int]) -> None:
+        """Send a target velocity (60FFh, the drive's velocity unit) to each node."""
+
 
 @dataclass
 class Run:
     """One profile being streamed to some nodes of the bus."""
 
     nodes: Tuple[int, ...]
-    line: Line
+    line: Union[Line, VelocityRamp]  # a position line (CSP) or a velocity ramp (CSV)
     started: threading.Event = field(default_factory=threading.Event)
     ended: threading.Event = field(default_factory=threading.Event)
     failure: Optional[str] = None
@@ -183,14 +197,23 @@ class CyclicSender:
         if not runs:
             return False
         targets: Dict[int, int] = {}
+        velocities: Dict[int, int] = {}
         for run in runs:
-            for node, position in zip(run.nodes, run.line.positions(now)):
-                targets[node] = round(position)
+            line = run.line
+            if isinstance(line, VelocityRamp):
+                for node, velocity in zip(run.nodes, line.velocities(now)):
+                    velocities[node] = round(velocity)
+            else:
+                for node, position in zip(run.nodes, line.positions(now)):
+                    targets[node] = round(position)
         try:
-            self.transport.write_targets(targets)
+            if targets:
+                self.transport.write_targets(targets)
+            if velocities:
+                self.transport.write_velocities(velocities)
         except Exception as exc:  # a bus error: the drives hold their last set-points
             log.error("bus %s: set-points not sent (%s); the cyclic moves of nodes %s end "
-                      "here", self.bus, exc, sorted(targets))
+                      "here", self.bus, exc, sorted({**targets, **velocities}))
             with self._lock:
                 for run in runs:
                     run.failure = str(exc) or type(exc).__name__
@@ -220,7 +243,8 @@ class CyclicSender:
         with self._lock:
             return self._last.get(node)
 
-    def start(self, nodes: Tuple[int, ...], line: Line, timeout: float) -> Run:
+    def start(self, nodes: Tuple[int, ...], line: Union[Line, VelocityRamp],
+              timeout: float) -> Run:
         """Stream ``line`` to ``nodes``; returns once its first set-points went out."""
         if not self.alive() and self._thread is not None:
             raise DeviceFailure(f"bus {self.bus}: the cyclic thread has ended")
@@ -272,30 +296,45 @@ class CanopenSetpoints:
     """
 
     RPDO = 3
+    VELOCITY_RPDO = 4  # CSV: RPDO4 (controlword + 60FFh by default) remapped to 60FFh alone
 
     def __init__(self, network: Any) -> None:
         self.network = network
         self._vars: Dict[int, Tuple[Any, Any]] = {}  # node -> (pdo, target)
+        self._velocity_vars: Dict[int, Tuple[Any, Any]] = {}  # node -> (pdo, 60FFh)
 
-    def prepare(self, node: int) -> None:
+    def _remap(self, node: int, number: int, index: int) -> Tuple[Any, Any]:
         remote = self.network[node]
-        pdo = remote.rpdo[self.RPDO]
+        pdo = remote.rpdo[number]
         pdo.read()
         pdo.clear()
-        target = pdo.add_variable(0x607A)
-        if target is None:  # canopen logs and returns None
-            raise DeviceFailure(f"node {node}: 607Ah is not in the object dictionary "
-                                "(an EDS is needed for CSP)")
+        variable = pdo.add_variable(index)
+        if variable is None:  # canopen logs and returns None
+            raise DeviceFailure(f"node {node}: {index:04X}h is not in the object dictionary "
+                                "(an EDS is needed for CSP/CSV)")
         pdo.trans_type = 255
         pdo.enabled = True
         pdo.save()
         remote.nmt.state = "OPERATIONAL"
-        self._vars[node] = (pdo, target)
+        return pdo, variable
+
+    def prepare(self, node: int) -> None:
+        self._vars[node] = self._remap(node, self.RPDO, 0x607A)
+
+    def prepare_velocity(self, node: int) -> None:
+        """RPDO4 to 60FFh alone: no controlword in the stream, for the reason above."""
+        self._velocity_vars[node] = self._remap(node, self.VELOCITY_RPDO, 0x60FF)
 
     def write_targets(self, targets: Mapping[int, int]) -> None:
         for node, position in targets.items():
             pdo, target = self._vars[node]
             target.raw = position
+            pdo.transmit()
+
+    def write_velocities(self, velocities: Mapping[int, int]) -> None:
+        for node, velocity in velocities.items():
+            pdo, target = self._velocity_vars[node]
+            target.raw = velocity
             pdo.transmit()
 
     def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
@@ -305,5 +344,5 @@ class CanopenSetpoints:
             out[n] = int.from_bytes(data[:4], "little", signed=True)
         return out
 
-__all__ = ["CSP_MODE", "CanopenSetpoints", "CyclicSender", "Run",
+__all__ = ["CSP_MODE", "CSV_MODE", "CanopenSetpoints", "CyclicSender", "Run",
            "Setpoints"]

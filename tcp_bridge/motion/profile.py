@@ -34,6 +34,13 @@ the target, which is never harder than the move's own deceleration; a stop
 never passes the target.
 
 A trapezoid, not an S-curve: PSI names no jerk parameter.
+
+A velocity move (S00=3 of an axis in cyclic synchronous velocity, CSV, mode 9)
+is a :class:`VelocityRamp`: the velocity set-point 60FFh ramps linearly from
+where it is to 05 (bounded by 26) at 06 (bounded by 27) and is held there; a
+stop ramps it to 0 at 28. The same rule: between two samples ``dt`` apart it
+changes by at most ``rate * dt`` (never a step), and a stop starts from the
+set-point of that moment.
 """
 from __future__ import annotations
 
@@ -41,7 +48,7 @@ import math
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
-__all__ = ["AxisLimits", "Line", "Ramp", "Segment", "fractions", "plan_line"]
+__all__ = ["AxisLimits", "Line", "Ramp", "Segment", "VelocityRamp", "fractions", "plan_line"]
 
 
 @dataclass(frozen=True)
@@ -194,3 +201,62 @@ def fractions(line: Line, positions: Sequence[float]) -> Tuple[Optional[float], 
     for a, d, p in zip(line.starts, line.deltas, positions):
         out.append(None if d == 0.0 else (p - a) / d)
     return tuple(out)
+
+
+@dataclass(frozen=True)
+class VelocityRamp:
+    """One axis's velocity set-point: ``v0`` at ``t0``, linearly towards ``target`` at
+    ``rate`` (per s), then held; :meth:`stop_at` ramps it to 0 at ``stop_rate``."""
+
+    t0: float
+    v0: float
+    target: float
+    rate: float
+    stop_rate: float
+    stopping: bool = False  # a stop ramp: the run ends once it is at 0
+
+    def __post_init__(self) -> None:
+        for name in ("rate", "stop_rate"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be positive and finite, not {value!r}")
+        if not (math.isfinite(self.v0) and math.isfinite(self.target)):
+            raise ValueError("velocities must be finite")
+
+    @property
+    def ramp_end(self) -> float:
+        """When the set-point arrives at ``target``."""
+        return self.t0 + abs(self.target - self.v0) / self.rate
+
+    @property
+    def end_time(self) -> float:
+        """When the run ends: a stop's ramp end; a move that holds its velocity never ends."""
+        return self.ramp_end if self.stopping else math.inf
+
+    @property
+    def targets(self) -> Tuple[float, ...]:
+        return (self.target,)
+
+    def velocity(self, t: float) -> float:
+        if t >= self.ramp_end:
+            return self.target  # exactly the target from the ramp's end on
+        if t <= self.t0:
+            return self.v0
+        delta = self.target - self.v0
+        step = self.rate * (t - self.t0)
+        if step >= abs(delta):
+            return self.target
+        return self.v0 + math.copysign(step, delta)
+
+    def velocities(self, t: float) -> Tuple[float, ...]:
+        return (self.velocity(t),)
+
+    def finished(self, t: float) -> bool:
+        return self.stopping and t >= self.ramp_end
+
+    def stop_at(self, t: float) -> "VelocityRamp":
+        """From the set-point at ``t`` to 0 at the stop rate (never a step)."""
+        if self.finished(t):
+            return self
+        return VelocityRamp(max(t, self.t0), self.velocity(t), 0.0, self.stop_rate,
+                            self.stop_rate, stopping=True)

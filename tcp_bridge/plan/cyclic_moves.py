@@ -20,9 +20,9 @@ drive is told, fixed when the request is resolved; the stream is :mod:`tcp_bridg
   first set-points went out and every drive still shows OPERATION ENABLED.
 * R82 of a cyclic axis: its latest run has ended and the actual position
   6064h is within the position window 6067h of the run's target (a drive in
-  CSP need not set statusword bit 10).
+  CSP need not set statusword bit 10); after a velocity run, 606Ch is 0.
 
-Velocity moves (S00=3, CSV) of a cyclic axis are not implemented: CAN.
+Velocity moves (S00=3) of a cyclic axis run in CSV: :mod:`.cyclic_velocity`.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ from typing import Callable, List, Optional, Sequence, Tuple
 from ..cia402_words import CONTROLWORD, MODES_DISPLAY, Cw, Deadline
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion.cyclic import CSP_MODE, CyclicSender
-from ..motion.profile import AxisLimits, plan_line
+from ..motion.profile import AxisLimits, VelocityRamp, plan_line
 from .axis import AxisRuntime
 
 POSITION_ACTUAL = 0x6064
@@ -169,6 +169,8 @@ def cyclic_target_reached(axis: AxisRuntime) -> Callable[[], int]:
             return 0  # never moved by the bridge: no target of ours to be in
         if not run.ended.is_set():
             return 0
+        if isinstance(run.line, VelocityRamp):  # CSV: at rest, as R82 of a pv move
+            return int(port.read(VELOCITY_ACTUAL, 0) == 0)
         index = run.nodes.index(axis.config.node_id)
         target = round(run.line.targets[index])
         window = port.read(POSITION_WINDOW, 0)

@@ -42,6 +42,7 @@ from ..tables.units import Number, Scaling
 from .axis import AxisRuntime, Follower
 from .cyclic_moves import (absolute_target, line_move, plan_cyclic_line, relative_target,
                            stop_cyclic)
+from .cyclic_velocity import velocity_move
 from .writes import check_resolution
 
 log = logging.getLogger("tcp_bridge.plan")
@@ -212,10 +213,15 @@ def _start(moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]]) -> None:
 
 
 def _plan_cyclic_move(axis: AxisRuntime, how: int) -> MovePlan:
-    """S00=1/2 of an axis in CSP: a line of that axis alone (:mod:`.cyclic_moves`)."""
+    """S00=1/2 of an axis in CSP: a line of that axis alone (:mod:`.cyclic_moves`);
+    S00=3 a velocity ramp in CSV (:mod:`.cyclic_velocity`)."""
+    if how == 3:
+        run = velocity_move(axis)
+        axis.lead(())
+        return MovePlan(run, halt=lambda: halt_all([axis]))
     if how not in (1, 2):
         raise InvalidCommand(f"axis {axis.addr}: S00={how} is not available in cyclic "
-                             f"mode {axis.config.cyclic!r} (only 1, 2 and 8)", cmd=0)
+                             f"mode {axis.config.cyclic!r} (only 1, 2, 3 and 8)", cmd=0)
     target = (absolute_target if how == 1 else relative_target)(axis, axis.user(2))
     axis.lead(())
     return MovePlan(line_move([axis], [target]), halt=lambda: halt_all([axis]))

@@ -28,7 +28,7 @@ from ..bus.sdo import NodeSilent, object_type
 from ..cia402_words import MODES_DISPLAY, STATUSWORD, Mode
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import State, Why
-from ..motion.cyclic import CSP_MODE
+from ..motion.cyclic import CSP_MODE, CSV_MODE
 from ..tables.axes import DeviceCode, parameter_spec, to_stored
 from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
@@ -295,10 +295,14 @@ def _inhibit(r: Resolved) -> WritePlan:
                 # so its line ramps down and ends first (the others on it stop too).
                 if stop_cyclic(axis):
                     wait_stopped(axis, drive.timing.ack_timeout)
-                # A drive in CSP follows 607Ah at once when enabled: hold where it stands.
-                if port.read(MODES_DISPLAY, 0) == CSP_MODE:
+                # A drive in CSP follows 607Ah at once when enabled: hold where it
+                # stands; one in CSV follows 60FFh: hold still.
+                mode = port.read(MODES_DISPLAY, 0)
+                if mode == CSP_MODE:
                     port.write(0x607A, 0, port.read(0x6064, 0))
-            drive.enable(restore, modes | {CSP_MODE})
+                elif mode == CSV_MODE:
+                    port.write(0x60FF, 0, 0)
+            drive.enable(restore, modes | {CSP_MODE, CSV_MODE})
         return enable_cyclic
     return drive.disable  # a cyclic axis ramps down on its profile first (cyclic_moves.rest)
 
