@@ -33,20 +33,21 @@ import argparse
 import asyncio
 import dataclasses
 import logging
-import math
 import os
 import signal
-import socket
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Dict, Optional, Sequence
 
-from .access import LOOPBACK, Network, is_loopback_bind, parse_network
+from .access import LOOPBACK, is_loopback_bind
 from .access import describe as describe_networks
 from .tables.axes import AxisTable, ConfigError, Settings, simulated_table
 from .errors import BridgeError, MalformedReply
 from .tables.statefile import check_writable
-from .wire import REPLY_SIZE, Reply, Status, decode_reply
+from .cli_types import (address, can_server, http_address, network, optional_port, port,
+                        positive_int, positive_seconds)
+from .client import describe, send, split_requests
+from .wire import Status
 
 if TYPE_CHECKING:
     from .server import ServerOptions
@@ -63,74 +64,7 @@ def _fail(message: str) -> int:
     return 2
 
 
-# --- argument types: argparse turns ArgumentTypeError into one line and exit 2 ------------
-
-
-def _int(text: str, what: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
-
-
-def port(text: str) -> int:
-    value = _int(text, "a port (0..65535)")
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{value} is not a port (0..65535)")
-    return value
-
-
-def optional_port(text: str) -> int:
-    value = _int(text, "a port (0..65535, or -1 for none)")
-    if not -1 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{value} is not a port (0..65535, or -1 for none)")
-    return value
-
-
-def positive_int(text: str) -> int:
-    value = _int(text, "a positive integer")
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} is not a positive integer")
-    return value
-
-
-def positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text} is not a positive number of seconds")
-    return value
-
-
 # --- serve ---------------------------------------------------------------------------
-
-
-def can_server(text: str) -> str:
-    from epos_link.simulator.socketcand import parse_address
-
-    try:
-        host, port = parse_address(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-
-
-def network(text: str) -> Network:
-    try:
-        return parse_network(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def http_address(text: str) -> "tuple[str, int]":
-    from .status.http import parse_address
-
-    try:
-        return parse_address(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _table(args: argparse.Namespace) -> AxisTable:
@@ -266,62 +200,6 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 # --- send ----------------------------------------------------------------------------
-
-
-def describe(reply: Reply) -> str:
-    """``"1 R 10=567 ACK"``: the reply with its status spelled out."""
-    head = " ".join("?" if p is None else str(p) for p in (reply.axis, reply.kind, reply.cmd))
-    value = "" if reply.value is None else f"={reply.value}"
-    return f"{head}{value} {reply.status.name}"
-
-
-def _address(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit():
-        raise ValueError(f"expected HOST:PORT, not {text!r}")
-    if not 1 <= int(port) <= 65535:
-        raise ValueError(f"{text!r}: port {int(port)} is not 1..65535")
-    return host.strip("[]") or "127.0.0.1", int(port)
-
-
-def address(text: str) -> str:
-    """argparse type of ``send``'s HOST:PORT (checked, kept as text for messages)."""
-    try:
-        _address(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-def split_requests(texts: Sequence[str]) -> List[str]:
-    """Each argument's CR- or LF-separated lines, stripped, empty ones dropped.
-
-    The gateway ends a request at CR (spec 2.2.1), and our server at LF too, so
-    ``"1R10\\n1R12"`` is two requests with two replies; sending it as one
-    would print the first reply and leave the second unread.
-    """
-    out: List[str] = []
-    for text in texts:
-        out.extend(line.strip() for line in text.replace("\r", "\n").split("\n"))
-    return [line for line in out if line]
-
-
-def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[Reply]:
-    """Send each request (CR appended) and decode its 30-byte reply."""
-    host, port = _address(address)
-    requests = split_requests(requests)
-    replies = []
-    with socket.create_connection((host, port), timeout=timeout) as sock:
-        for text in requests:
-            sock.sendall(text.encode("ascii") + b"\r")
-            data = b""
-            while len(data) < REPLY_SIZE:
-                chunk = sock.recv(REPLY_SIZE - len(data))
-                if not chunk:
-                    raise MalformedReply(f"connection closed after {len(data)} bytes of a reply")
-                data += chunk
-            replies.append(decode_reply(data))
-    return replies
 
 
 def _send(args: argparse.Namespace) -> int:

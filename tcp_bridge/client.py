@@ -1,0 +1,64 @@
+"""A PSI gateway client: send requests to a bridge (or a MasterMACS) and decode the replies.
+
+``tcp-bridge send`` (:mod:`tcp_bridge.cli`) is this module on the command line;
+tests and the status page's callers use :func:`send` directly. Each request
+goes out with CR appended (spec 2.2.1) and its reply is the fixed 30 bytes of
+spec 2.2.2, decoded by :func:`tcp_bridge.wire.decode_reply`.
+"""
+from __future__ import annotations
+
+import socket
+from typing import List, Sequence
+
+from .errors import MalformedReply
+from .wire import REPLY_SIZE, Reply, decode_reply
+
+
+def describe(reply: Reply) -> str:
+    """``"1 R 10=567 ACK"``: the reply with its status spelled out."""
+    head = " ".join("?" if p is None else str(p) for p in (reply.axis, reply.kind, reply.cmd))
+    value = "" if reply.value is None else f"={reply.value}"
+    return f"{head}{value} {reply.status.name}"
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ValueError(f"expected HOST:PORT, not {text!r}")
+    if not 1 <= int(port) <= 65535:
+        raise ValueError(f"{text!r}: port {int(port)} is not 1..65535")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def split_requests(texts: Sequence[str]) -> List[str]:
+    """Each argument's CR- or LF-separated lines, stripped, empty ones dropped.
+
+    The gateway ends a request at CR (spec 2.2.1), and our server at LF too, so
+    ``"1R10\\n1R12"`` is two requests with two replies; sending it as one
+    would print the first reply and leave the second unread.
+    """
+    out: List[str] = []
+    for text in texts:
+        out.extend(line.strip() for line in text.replace("\r", "\n").split("\n"))
+    return [line for line in out if line]
+
+
+def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[Reply]:
+    """Send each request (CR appended) and decode its 30-byte reply."""
+    host, port = parse_address(address)
+    requests = split_requests(requests)
+    replies = []
+    with socket.create_connection((host, port), timeout=timeout) as sock:
+        for text in requests:
+            sock.sendall(text.encode("ascii") + b"\r")
+            data = b""
+            while len(data) < REPLY_SIZE:
+                chunk = sock.recv(REPLY_SIZE - len(data))
+                if not chunk:
+                    raise MalformedReply(f"connection closed after {len(data)} bytes of a reply")
+                data += chunk
+            replies.append(decode_reply(data))
+    return replies
+
+
+__all__ = ["describe", "parse_address", "send", "split_requests"]
