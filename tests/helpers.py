@@ -2,8 +2,9 @@
 wait for a condition another thread brings about."""
 from __future__ import annotations
 
+import contextlib
 import time
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Tuple
 
 if TYPE_CHECKING:
     import socket
@@ -67,3 +68,26 @@ def wait_until(what: Callable[[], object], timeout: float = 10.0,
     while not what():
         assert time.monotonic() < deadline, f"{why} (within {timeout} s)"
         time.sleep(0.005)
+
+
+@contextlib.contextmanager
+def canopen_node_on_simulator(node_id: int, node_class: Any = None) -> Iterator[Tuple[Any, Any]]:
+    """An ``Epos4Simulator`` with drive ``node_id`` behind it, and a canopen node of
+    ``node_class`` (default ``canopen.RemoteNode``) for it on the simulator's virtual
+    CAN bus, with the shipped EDS: ``(simulator, node)``; both closed afterwards."""
+    import canopen
+
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.od import EDS_PATH
+
+    sim = Epos4Simulator(1, [node_id])
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=sim.channel, receive_own_messages=False)
+    node = (node_class or canopen.RemoteNode)(node_id, str(EDS_PATH))
+    node.sdo.RESPONSE_TIMEOUT = 1.0
+    net.add_node(node)
+    try:
+        yield sim, node
+    finally:
+        net.disconnect()
+        sim.close()

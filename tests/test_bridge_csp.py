@@ -22,6 +22,7 @@ from tcp_bridge.engine import Engine, build_engine
 from tcp_bridge.errors import InvalidCommand
 from tcp_bridge.tables.axes import AxisTable, ConfigError, simulated_increments_per_revolution
 from tcp_bridge.wire import Status, decode_reply, parse_request
+from tests.drive_samples import DriveSampler, largest_change, velocities
 from tests.helpers import wait_until
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,
@@ -50,16 +51,13 @@ def ask(engine: Engine, line: str) -> Tuple[Status, Any]:
     return reply.status, reply.value
 
 
-class Sampler:
+class Sampler(DriveSampler[Sample]):
     """Both drives' positions and states, every few ms, from the simulator's models."""
 
     def __init__(self, engine: Engine) -> None:
         sim = engine.backends[0].simulator
         self.nodes = [sim.drives[n] for n in NODES]
-        self.seen: List[Sample] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__()
 
     def now(self) -> Sample:
         values = []
@@ -68,16 +66,6 @@ class Sampler:
                 node.drive.sync()
                 values.append((node.drive.now, node.drive.position, node.drive.state))
         return (values[0][0], values[0][1], values[1][1], values[0][2], values[1][2])
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.seen.append(self.now())
-            time.sleep(0.004)
-
-    def close(self) -> List[Sample]:
-        self._stop.set()
-        self._thread.join(5)
-        return self.seen
 
 
 @pytest.fixture
@@ -92,21 +80,6 @@ def engine() -> Iterator[Engine]:
 def enable_both(engine: Engine) -> None:
     for n in (1, 2):  # AxAddr 1 and 2: nodes 2 and 3
         assert ask(engine, f"{n}S04=1")[0] is Status.ACK
-
-
-def velocities(seen: List[Sample], which: int, span: float = 0.03) -> List[Tuple[float, float]]:
-    """(time, velocity in inc/s) from positions over windows of at least ``span`` s."""
-    out, start = [], seen[0]
-    for s in seen[1:]:
-        if s[0] - start[0] >= span:
-            out.append((s[0], (s[which] - start[which]) / (s[0] - start[0])))
-            start = s
-    return out
-
-
-def largest_change(v: List[Tuple[float, float]]) -> float:
-    """The largest |dv/dt| between consecutive velocity windows (inc/s^2)."""
-    return max(abs(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(v, v[1:]))
 
 
 # -- S90=1: one line ---------------------------------------------------------------------------

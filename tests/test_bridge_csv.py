@@ -9,9 +9,8 @@ positions over windows of 30 ms (inc/s); bounds carry wide margins.
 """
 from __future__ import annotations
 
-import threading
 import time
-from typing import Iterator, List, Tuple
+from typing import Iterator, Tuple
 
 import pytest
 
@@ -19,48 +18,23 @@ from epos_link.cia402 import State
 from tcp_bridge.engine import Engine, build_engine
 from tcp_bridge.errors import DeviceFailure
 from tcp_bridge.wire import Status
+from tests.drive_samples import DriveSampler, largest_change, velocities
 from tests.helpers import wait_until
 from tests.test_bridge_csp import FACTOR, STOP, VELOCITY, ask, table
 
 Sample = Tuple[float, int, State, int]  # time, position of node 2, its state, its mode
 
 
-class Sampler:
+class Sampler(DriveSampler[Sample]):
     def __init__(self, engine: Engine) -> None:
         self.node = engine.backends[0].simulator.drives[2]
-        self.seen: List[Sample] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__()
 
     def now(self) -> Sample:
         with self.node.lock:
             d = self.node.drive
             d.sync()
             return d.now, d.position, d.state, int(d.mode)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.seen.append(self.now())
-            time.sleep(0.004)
-
-    def close(self) -> List[Sample]:
-        self._stop.set()
-        self._thread.join(5)
-        return self.seen
-
-
-def velocities(seen: List[Sample], span: float = 0.03) -> List[Tuple[float, float]]:
-    out, start = [], seen[0]
-    for s in seen[1:]:
-        if s[0] - start[0] >= span:
-            out.append((s[0], (s[1] - start[1]) / (s[0] - start[0])))
-            start = s
-    return out
-
-
-def largest_change(v: List[Tuple[float, float]]) -> float:
-    return max(abs(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(v, v[1:]))
 
 
 def velocity_now(sampler: Sampler, span: float = 0.05) -> float:

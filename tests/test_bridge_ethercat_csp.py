@@ -24,7 +24,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Iterator, List, Tuple
+from typing import Iterator, Tuple
 
 import pytest
 
@@ -32,6 +32,7 @@ from epos_link.cia402 import State
 from tcp_bridge.tables.axes import simulated_increments_per_revolution
 from tcp_bridge.wire import Status
 from tests.ecat_veth import unavailable_reason, veth_pair
+from tests.drive_samples import DriveSampler, largest_change, velocities
 from tests.helpers import psi_ask, wait_until
 
 WHY_NOT = unavailable_reason()
@@ -116,17 +117,12 @@ def ok(sock: socket.socket, *lines: str) -> None:
         assert ask(sock, line)[0] is Status.ACK, line
 
 
-class Sampler:
+class Sampler(DriveSampler[Sample]):
     """Both drives' positions and states, every few ms, from the simulated slaves."""
 
     def __init__(self, sim: object) -> None:
-        import threading
-
         self.drives = list(sim.drives)  # type: ignore[attr-defined]
-        self.seen: List[Sample] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__()
 
     def now(self) -> Sample:
         values = []
@@ -135,29 +131,6 @@ class Sampler:
                 d.drive.sync()
                 values.append((d.drive.now, d.drive.position, d.drive.state))
         return (values[0][0], values[0][1], values[1][1], values[0][2], values[1][2])
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.seen.append(self.now())
-            time.sleep(0.004)
-
-    def close(self) -> List[Sample]:
-        self._stop.set()
-        self._thread.join(5)
-        return self.seen
-
-
-def velocities(seen: List[Sample], which: int, span: float = 0.03) -> List[Tuple[float, float]]:
-    out, start = [], seen[0]
-    for s in seen[1:]:
-        if s[0] - start[0] >= span:
-            out.append((s[0], (s[which] - start[which]) / (s[0] - start[0])))
-            start = s
-    return out
-
-
-def largest_change(v: List[Tuple[float, float]]) -> float:
-    return max(abs(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(v, v[1:]))
 
 
 def enable_and_aim(sock: socket.socket) -> None:

@@ -9,12 +9,13 @@ import sys
 import textwrap
 import time
 from pathlib import Path
-from typing import Callable, Iterator, List, Tuple
+from typing import Iterator, List, Tuple
 
 import pytest
 
 from tcp_bridge.cli import send
 from tcp_bridge.wire import Status
+from tests.helpers import wait_until
 
 SERVED = re.compile(r"CAN bus served over socketcand at (\S+):(\d+) \(channel can0\)")
 
@@ -227,7 +228,7 @@ def test_basenode402_script_in_a_second_process_enables_and_moves_through_pdos(
         # view of PRE-OPERATIONAL, which it has only after hearing a boot-up.
         node.setup_402_state_machine(read_pdos=False)
         node.nmt.state = "OPERATIONAL"
-        until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0200 != 0, "the statusword TPDO")
+        wait_until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0200 != 0, 30.0, "the statusword TPDO")
         for state in ("READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED"):
             node.state = state  # canopen waits for the statusword TPDO itself
         assert node.state == "OPERATION ENABLED"
@@ -237,18 +238,10 @@ def test_basenode402_script_in_a_second_process_enables_and_moves_through_pdos(
         rpdo.transmit()
         rpdo["Controlword"].raw = 0x001F  # new set-point, absolute
         rpdo.transmit()
-        until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0400 != 0
-              and node.sdo[0x6064].raw == 4000, "target reached at 4000")
+        wait_until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0400 != 0
+              and node.sdo[0x6064].raw == 4000, 30.0, "target reached at 4000")
         rpdo["Controlword"].raw = 0x000F
         rpdo.transmit()
         node.state = "SWITCH ON DISABLED"
     finally:
         network.disconnect()
-
-
-def until(condition: "Callable[[], bool]", what: str, timeout: float = 30.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.02)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable, Iterator, List, Tuple
+from typing import Iterator, List, Tuple
 
 import can
 import canopen
@@ -19,7 +19,7 @@ from canopen.sdo import SdoAbortedError
 from epos_link.cia402 import State
 from epos_link.simulator.core import Epos4Simulator
 from epos_link.simulator.heartbeat import ABORT_PARAMETER_INCOMPATIBLE
-from epos_link.simulator.od import EDS_PATH
+from tests.helpers import canopen_node_on_simulator, wait_until
 
 NODE = 2
 MASTER = 127
@@ -28,25 +28,8 @@ CONSUMER_MS = 300
 
 @pytest.fixture
 def bus() -> Iterator[Tuple[Epos4Simulator, canopen.RemoteNode]]:
-    sim = Epos4Simulator(1, [NODE])
-    net = canopen.Network()
-    net.connect(interface="virtual", channel=sim.channel, receive_own_messages=False)
-    node = canopen.RemoteNode(NODE, str(EDS_PATH))
-    node.sdo.RESPONSE_TIMEOUT = 1.0
-    net.add_node(node)
-    try:
-        yield sim, node
-    finally:
-        net.disconnect()
-        sim.close()
-
-
-def until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.005)
+    with canopen_node_on_simulator(NODE) as pair:
+        yield pair
 
 
 class FakeMaster:
@@ -111,8 +94,8 @@ def test_producer_sends_the_nmt_state_at_its_period(bus: Tuple[Epos4Simulator, c
         assert {data for _, data in frames} == {b"\x7f"}  # pre-operational
         for state, byte in (("OPERATIONAL", b"\x05"), ("STOPPED", b"\x04")):
             node.nmt.state = state
-            until(lambda: (m := raw.recv(0.05)) is not None and m.arbitration_id == 0x700 + NODE
-                  and bytes(m.data) == byte, f"a heartbeat in {state}")
+            wait_until(lambda: (m := raw.recv(0.05)) is not None and m.arbitration_id == 0x700 + NODE
+                  and bytes(m.data) == byte, 5.0, f"a heartbeat in {state}")
 
 
 def test_a_lost_master_heartbeat_quick_stops_the_drive(bus: Tuple[Epos4Simulator, canopen.RemoteNode]) -> None:
@@ -123,18 +106,18 @@ def test_a_lost_master_heartbeat_quick_stops_the_drive(bus: Tuple[Epos4Simulator
     master = FakeMaster(sim.channel)
     try:
         run_velocity(node)
-        until(lambda: seen(sim) == (State.OPERATION_ENABLED, 500), "the velocity")
+        wait_until(lambda: seen(sim) == (State.OPERATION_ENABLED, 500), 5.0, "the velocity")
         time.sleep(1.0)  # three consumer times: the heartbeats keep it running
         assert seen(sim) == (State.OPERATION_ENABLED, 500)
         assert node.emcy.log == []
     finally:
         last = master.stop()
-    until(lambda: [e.code for e in node.emcy.log] == [0x8130], "EMCY 8130h")
+    wait_until(lambda: [e.code for e in node.emcy.log] == [0x8130], 5.0, "EMCY 8130h")
     lost_after = time.monotonic() - last
     assert lost_after >= CONSUMER_MS / 1000 - 0.05  # not before the consumer time
     assert node.emcy.log[0].register & 0x11 == 0x11  # generic, communication
-    until(lambda: seen(sim)[0] in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED), "quick stop")
-    until(lambda: seen(sim) == (State.SWITCH_ON_DISABLED, 0), "605Ah = 2: at rest")
+    wait_until(lambda: seen(sim)[0] in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED), 5.0, "quick stop")
+    wait_until(lambda: seen(sim) == (State.SWITCH_ON_DISABLED, 0), 5.0, "605Ah = 2: at rest")
     assert State.QUICK_STOP_ACTIVE in [s for _, _, s in drive.history]
     assert time.monotonic() - last < CONSUMER_MS / 1000 + 3.0  # ramp 500 rpm at 10000 rpm/s: 50 ms
     assert not drive.unsafe_stops  # it ramped down with the power stage on
@@ -145,13 +128,13 @@ def test_option_0_only_emcy_and_option_1_fault(bus: Tuple[Epos4Simulator, canope
     watch(node, 0)
     run_velocity(node)
     FakeMaster(sim.channel).stop()  # one heartbeat: active, then lost
-    until(lambda: [e.code for e in node.emcy.log] == [0x8130], "EMCY 8130h")
+    wait_until(lambda: [e.code for e in node.emcy.log] == [0x8130], 5.0, "EMCY 8130h")
     time.sleep(0.2)
     assert seen(sim) == (State.OPERATION_ENABLED, 500)
     node.sdo[0x6007].raw = 1
     FakeMaster(sim.channel).stop()  # active again, lost again: now a fault
-    until(lambda: [e.code for e in node.emcy.log] == [0x8130, 0x8130], "the second EMCY 8130h")
-    until(lambda: seen(sim)[0] is State.FAULT, "FAULT")
+    wait_until(lambda: [e.code for e in node.emcy.log] == [0x8130, 0x8130], 5.0, "the second EMCY 8130h")
+    wait_until(lambda: seen(sim)[0] is State.FAULT, 5.0, "FAULT")
     assert node.sdo[0x603F].raw == 0x8130 and node.sdo[0x1001].raw == 0x11
 
 
@@ -182,7 +165,7 @@ def test_reset_node_stops_the_supervision(bus: Tuple[Epos4Simulator, canopen.Rem
     node.sdo[0x1010][1].raw = 0x65766173  # save: the consumer survives the reset
     FakeMaster(sim.channel).stop()  # active...
     node.nmt.send_command(0x81)  # ...but a reset node starts supervision again
-    until(lambda: sim.nmt_state(NODE).name == "PRE_OPERATIONAL", "boot-up")
+    wait_until(lambda: sim.nmt_state(NODE).name == "PRE_OPERATIONAL", 5.0, "boot-up")
     time.sleep(3 * CONSUMER_MS / 1000)
     assert node.sdo[0x1016][1].raw == (MASTER << 16) | CONSUMER_MS
     assert node.emcy.log == []

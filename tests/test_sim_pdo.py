@@ -14,25 +14,16 @@ import pytest
 from canopen.sdo import SdoAbortedError
 
 from epos_link.simulator.core import Epos4Simulator
-from epos_link.simulator.od import EDS_PATH
 from epos_link.simulator.pdo import ABORT_NOT_MAPPABLE, ABORT_UNSUPPORTED
+from tests.helpers import canopen_node_on_simulator
 
 NODE = 2
 
 
 @pytest.fixture
 def bus() -> Iterator[Tuple[Epos4Simulator, canopen.RemoteNode]]:
-    sim = Epos4Simulator(1, [NODE])
-    net = canopen.Network()
-    net.connect(interface="virtual", channel=sim.channel, receive_own_messages=False)
-    node = canopen.RemoteNode(NODE, str(EDS_PATH))
-    node.sdo.RESPONSE_TIMEOUT = 1.0
-    net.add_node(node)
-    try:
-        yield sim, node
-    finally:
-        net.disconnect()
-        sim.close()
+    with canopen_node_on_simulator(NODE) as pair:
+        yield pair
 
 
 def map_status(node: canopen.RemoteNode, *, event_ms: int = 20) -> None:

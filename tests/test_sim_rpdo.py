@@ -8,7 +8,7 @@ RPDO3. Time bounds are generous (seconds), never tight.
 from __future__ import annotations
 
 import time
-from typing import Callable, Iterator, Tuple
+from typing import Iterator, Tuple
 
 import can
 import canopen
@@ -17,33 +17,16 @@ from canopen.sdo import SdoAbortedError
 
 from epos_link.cia402 import State
 from epos_link.simulator.core import Epos4Simulator
-from epos_link.simulator.od import EDS_PATH
 from epos_link.simulator.pdo import ABORT_NOT_MAPPABLE, ABORT_UNSUPPORTED
+from tests.helpers import canopen_node_on_simulator, wait_until
 
 NODE = 2
 
 
 @pytest.fixture
 def bus() -> Iterator[Tuple[Epos4Simulator, canopen.BaseNode402]]:
-    sim = Epos4Simulator(1, [NODE])
-    net = canopen.Network()
-    net.connect(interface="virtual", channel=sim.channel, receive_own_messages=False)
-    node = canopen.BaseNode402(NODE, str(EDS_PATH))
-    node.sdo.RESPONSE_TIMEOUT = 1.0
-    net.add_node(node)
-    try:
-        yield sim, node
-    finally:
-        net.disconnect()
-        sim.close()
-
-
-def until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.005)
+    with canopen_node_on_simulator(NODE, canopen.BaseNode402) as pair:
+        yield pair
 
 
 def emcy_codes(node: canopen.BaseNode402) -> list:
@@ -53,7 +36,7 @@ def emcy_codes(node: canopen.BaseNode402) -> list:
 def nmt(sim: Epos4Simulator, node: canopen.BaseNode402, state: str) -> None:
     """Send an NMT command and wait until the drive has it (it runs on another thread)."""
     node.nmt.state = state
-    until(lambda: sim.nmt_state(NODE).name == state.replace("-", "_"), f"NMT {state}")
+    wait_until(lambda: sim.nmt_state(NODE).name == state.replace("-", "_"), 5.0, f"NMT {state}")
 
 
 def test_the_default_mapping_is_maxons(bus: Tuple[Epos4Simulator, canopen.BaseNode402]) -> None:
@@ -76,7 +59,7 @@ def test_basenode402_enables_and_moves_through_pdos(bus: Tuple[Epos4Simulator, c
     node.rpdo.read()
     node.setup_402_state_machine(read_pdos=False)
     node.nmt.state = "OPERATIONAL"
-    until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0200 != 0, "the statusword TPDO (remote bit)")
+    wait_until(lambda: node.tpdo_values.get(0x6041, 0) & 0x0200 != 0, 5.0, "the statusword TPDO (remote bit)")
     for state in ("READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED"):
         node.state = state
     assert drive.state is State.OPERATION_ENABLED and node.state == "OPERATION ENABLED"
@@ -87,7 +70,7 @@ def test_basenode402_enables_and_moves_through_pdos(bus: Tuple[Epos4Simulator, c
     rpdo.transmit()
     rpdo["Controlword"].raw = 0x001F  # new set-point, absolute
     rpdo.transmit()
-    until(lambda: node.tpdo_values[0x6041] & 0x0400 != 0 and drive.position == 4000, "target reached")
+    wait_until(lambda: node.tpdo_values[0x6041] & 0x0400 != 0 and drive.position == 4000, 5.0, "target reached")
     assert node.sdo[0x6064].raw == 4000
     rpdo["Controlword"].raw = 0x000F
     rpdo.transmit()
@@ -105,7 +88,7 @@ def test_rpdos_count_only_in_operational(bus: Tuple[Epos4Simulator, canopen.Base
     assert sim.drive(NODE).controlword == 0
     nmt(sim, node, "OPERATIONAL")
     rpdo.transmit()
-    until(lambda: sim.drive(NODE).state is State.READY_TO_SWITCH_ON, "shutdown through RPDO1")
+    wait_until(lambda: sim.drive(NODE).state is State.READY_TO_SWITCH_ON, 5.0, "shutdown through RPDO1")
     nmt(sim, node, "STOPPED")
     rpdo["Controlword"].raw = 0x0007
     rpdo.transmit()
@@ -145,9 +128,9 @@ def test_remapping_follows_the_cia301_procedure(bus: Tuple[Epos4Simulator, canop
         rpdo["Controlword"].raw = cw
         rpdo["Target velocity"].raw = 500
         rpdo.transmit()
-    until(lambda: drive.velocity == 500, "the velocity from the remapped RPDO2")
+    wait_until(lambda: drive.velocity == 500, 5.0, "the velocity from the remapped RPDO2")
     drive.store.write_value(0x6040, 0, 0x0002)  # quick stop: the test ends at rest
-    until(lambda: drive.velocity == 0, "standstill")
+    wait_until(lambda: drive.velocity == 0, 5.0, "standstill")
 
 
 def test_wrong_lengths(bus: Tuple[Epos4Simulator, canopen.BaseNode402]) -> None:
@@ -156,15 +139,15 @@ def test_wrong_lengths(bus: Tuple[Epos4Simulator, canopen.BaseNode402]) -> None:
     nmt(sim, node, "OPERATIONAL")
     with can.Bus(interface="virtual", channel=sim.channel) as raw:
         raw.send(can.Message(arbitration_id=0x202, data=b"\x06", is_extended_id=False))
-        until(lambda: emcy_codes(node) == [0x8210], "EMCY 8210h")
+        wait_until(lambda: emcy_codes(node) == [0x8210], 5.0, "EMCY 8210h")
         raw.send(can.Message(arbitration_id=0x202, data=b"\x06", is_extended_id=False))
         time.sleep(0.1)
         assert sim.drive(NODE).controlword == 0
         assert [e.code for e in node.emcy.log] == [0x8210]  # not repeated
         assert node.emcy.log[0].register & 0x10  # communication error
         raw.send(can.Message(arbitration_id=0x202, data=b"\x06\x00\xAA", is_extended_id=False))
-        until(lambda: emcy_codes(node) == [0x8210, 0x8220], "EMCY 8220h")
-        until(lambda: sim.drive(NODE).controlword == 6, "the long frame's first bytes")
+        wait_until(lambda: emcy_codes(node) == [0x8210, 0x8220], 5.0, "EMCY 8220h")
+        wait_until(lambda: sim.drive(NODE).controlword == 6, 5.0, "the long frame's first bytes")
 
 
 def test_emcy_on_fault_and_reset(bus: Tuple[Epos4Simulator, canopen.BaseNode402]) -> None:
@@ -172,13 +155,13 @@ def test_emcy_on_fault_and_reset(bus: Tuple[Epos4Simulator, canopen.BaseNode402]
     received = []
     node.emcy.add_callback(received.append)
     sim.drive(NODE).inject_fault("sto")
-    until(lambda: emcy_codes(node) == [0x8A88], "EMCY 8A88h")
+    wait_until(lambda: emcy_codes(node) == [0x8A88], 5.0, "EMCY 8A88h")
     emcy = node.emcy.log[0]
     assert emcy.register == node.sdo[0x1001].raw == 0x01
     assert emcy.data == bytes(5)
     assert [e.code for e in node.emcy.active] == [0x8A88]
     node.sdo[0x6040].raw = 0x0080  # fault reset: EMCY 0000h
-    until(lambda: len(received) == 2, "the error reset EMCY")
+    wait_until(lambda: len(received) == 2, 5.0, "the error reset EMCY")
     assert (received[1].code, received[1].register) == (0x0000, 0) and node.emcy.active == []
     nmt(sim, node, "STOPPED")  # no EMCY in Stopped (guide Table 3-13)
     sim.drive(NODE).inject_fault("following_error")
@@ -196,6 +179,6 @@ def test_emcy_cob_id_from_1014h_and_reset_restores_the_mapping(
     node.sdo[0x1016][1].raw = (5 << 16) | 300
     node.sdo[0x6007].raw = 0
     node.nmt.send_command(0x81)  # reset node: nothing saved, so the EDS defaults again
-    until(lambda: sim.nmt_state(NODE).name == "PRE_OPERATIONAL", "boot-up")
+    wait_until(lambda: sim.nmt_state(NODE).name == "PRE_OPERATIONAL", 5.0, "boot-up")
     assert node.sdo[0x1402][1].raw == 0x402 and node.sdo[0x1602][0].raw == 2
     assert (node.sdo[0x1017].raw, node.sdo[0x1016][1].raw, node.sdo[0x6007].raw) == (0, 0, 3)
