@@ -65,6 +65,7 @@ from typing import List, Optional, Sequence, Set, Tuple
 from .access import LOOPBACK, Address, Network, client_address, describe, is_allowed
 from .engine import Engine
 from .errors import BridgeError
+from .tasks import cancel_and_wait
 from .wire import DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item
 
 log = logging.getLogger(__name__)
@@ -341,10 +342,8 @@ class BridgeServer:
         tasks = [c.task for c in self._connections]
         if tasks:
             _, pending = await asyncio.wait(tasks, timeout=self.options.close_grace)
-            for task in pending:
-                task.cancel()
-            if pending:
-                await asyncio.wait(pending, timeout=1.0)
+            if await cancel_and_wait(pending, 1.0):
+                log.warning("%d client connections still open after the close", len(pending))
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(None, self.engine.close)
         self._closed.set()

@@ -298,6 +298,40 @@ def test_the_running_sampler_keeps_to_its_rate(bridge: Bridge) -> None:
     assert count <= 3 * max_transfers_per_second(PERIOD) * (elapsed + 2 * PERIOD * SLOW_EVERY)
 
 
+def test_close_ends_a_sampler_whose_cancellation_was_swallowed() -> None:
+    """CI once hung 30 s in Bridge.close(): before Python 3.12, wait_for (on the
+    scheduler's path) returns a result that meets a cancellation instead of raising
+    it (tcp_bridge.tasks). The fake engine swallows the first cancellation the same
+    way; close() must still end the sampler, and promptly."""
+    class Engine:
+        axes = {1: type("Axis", (), {"port": object(), "config": simulated_table(1).axes[1]})()}
+        reads = 0
+        swallowed = 0
+
+        async def execute(self, request: ReadRequest) -> bytes:
+            self.reads += 1
+            try:
+                await asyncio.sleep(0.05)
+            except asyncio.CancelledError:
+                if self.swallowed:
+                    raise
+                self.swallowed += 1
+            return Reply(request.axis, "R", request.cmd, Status.ACK, "0").encode()
+
+    async def main(engine: Engine) -> float:
+        sampler = Sampler(engine, period=0.01).start()
+        while engine.reads < 3:
+            await asyncio.sleep(0.01)
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        await asyncio.wait_for(sampler.close(), 20)
+        return loop.time() - started
+
+    engine = Engine()
+    took = asyncio.run(main(engine))
+    assert engine.swallowed == 1 and took < 20
+
+
 def test_the_documented_bound() -> None:
     assert max_transfers_per_second() == 13.0  # module docstring, docs/bridge.md
 

@@ -31,6 +31,7 @@ import logging
 from typing import Any, Dict, Final, List, Optional, Sequence, Set, Tuple
 
 from ..access import LOOPBACK, Network, describe, is_allowed
+from ..tasks import cancel_and_wait
 from .page import PAGE
 from .sampler import DEFAULT_PERIOD, Sampler
 
@@ -91,6 +92,7 @@ class StatusServer:
         self._server: Optional[asyncio.Server] = None
         self._tasks: Set["asyncio.Task[None]"] = set()
         self.streams = 0
+        self._closing = False
 
     @property
     def addresses(self) -> List[Tuple[str, int]]:
@@ -109,12 +111,11 @@ class StatusServer:
 
     async def close(self) -> None:
         """Stop listening, end every connection (streams too), stop the sampler."""
+        self._closing = True
         if self._server is not None:
             self._server.close()
-        for task in list(self._tasks):
-            task.cancel()
-        if self._tasks:
-            await asyncio.wait(list(self._tasks), timeout=2.0)
+        if await cancel_and_wait(list(self._tasks), 2.0):
+            log.warning("status page: %d connections still open after 2 s", len(self._tasks))
         await self.sampler.close()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -192,7 +193,7 @@ class StatusServer:
             await self._send(writer, response_head(200, "text/event-stream"))
             if self.sampler.latest is not None and queue.empty():
                 queue.put_nowait(self.sampler.latest)  # the page shows something at once
-            while True:
+            while not self._closing:  # a cancellation may be swallowed (tcp_bridge.tasks)
                 body = await queue.get()
                 await self._send(writer, b"data: " + json.dumps(body).encode("utf-8") + b"\n\n")
         finally:

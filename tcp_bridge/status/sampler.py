@@ -55,6 +55,7 @@ from collections import deque
 from typing import Any, Callable, Deque, Dict, Final, List, Optional, Set, Tuple
 
 from ..errors import BridgeError
+from ..tasks import cancel_and_wait
 from ..wire import ReadRequest, decode_reply
 from .rows import row
 
@@ -67,6 +68,7 @@ SLOW_TRANSFERS: Final = 6
 DEFAULT_PERIOD: Final = 0.5  # seconds between the end of a sample and the next
 SLOW_EVERY: Final = 4
 HISTORY_SECONDS: Final = 60.0
+CLOSE_TIMEOUT: Final = 5.0  # seconds close() waits for the sampling task to end
 QUEUE_SIZE: Final = 4  # samples a slow stream client may be behind before it skips some
 
 
@@ -97,6 +99,7 @@ class Sampler:
         self._last_error: Dict[int, Dict[str, Any]] = {}
         self._listeners: Set["asyncio.Queue[Dict[str, Any]]"] = set()
         self._task: Optional["asyncio.Task[None]"] = None
+        self._closing = False
 
     # -- life ------------------------------------------------------------------------
 
@@ -106,13 +109,15 @@ class Sampler:
 
     async def close(self) -> None:
         """Stop sampling (a read in flight is abandoned by this task, not by the bus)."""
+        self._closing = True
         if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
+            if await cancel_and_wait([self._task], CLOSE_TIMEOUT):
+                log.warning("status sampler: still running %g s after it was cancelled",
+                            CLOSE_TIMEOUT)
             self._task = None
 
     async def _run(self) -> None:
-        while True:
+        while not self._closing:  # a cancellation may be swallowed (tcp_bridge.tasks)
             try:
                 await self.sample()
             except asyncio.CancelledError:
