@@ -636,6 +636,7 @@ def test_a_client_that_never_reads_its_replies_is_closed_after_the_idle_timeout(
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)  # fills at once
         s.connect(r.addresses[0])
         wait_until(lambda: bool(r.server._connections))
+        server_socket = next(iter(r.server._connections)).writer.get_extra_info("socket")
         s.setblocking(False)
         sent = 0
         deadline = time.monotonic() + 30
@@ -648,22 +649,13 @@ def test_a_client_that_never_reads_its_replies_is_closed_after_the_idle_timeout(
                 break
         assert sent > 0
         wait_until(lambda: not r.server._connections, why="its slot was not freed")
-        # and its socket is closed, not left holding the replies it never read
-        wait_until(lambda: _reset(s))
+        # and its socket is closed (aborted: its close handshake cannot finish), not
+        # left holding the replies it never read. Checked on the server's side: once
+        # in a few hundred runs the client's kernel took over 10 s to report the reset.
+        wait_until(lambda: server_socket.fileno() == -1, why="the server kept its socket")
         s.close()
     finally:
         r.stop()
-
-
-def _reset(sock: socket.socket) -> bool:
-    """True once the peer has reset ``sock`` (a non-blocking send fails)."""
-    try:
-        sock.send(b"1R86\r")
-    except BlockingIOError:
-        return False
-    except OSError:
-        return True
-    return False
 
 
 def test_a_request_in_flight_longer_than_the_idle_timeout_keeps_its_connection() -> None:
