@@ -195,7 +195,7 @@ def test_transitions_0_and_1_at_power_up() -> None:
     (State.OPERATION_ENABLED, DISABLE_VOLTAGE, [9], State.SWITCH_ON_DISABLED),
     (State.SWITCHED_ON, DISABLE_VOLTAGE, [10], State.SWITCH_ON_DISABLED),
     (State.SWITCHED_ON, QUICK_STOP, [10], State.SWITCH_ON_DISABLED),
-    (State.OPERATION_ENABLED, QUICK_STOP, [11, 12], State.SWITCH_ON_DISABLED),  # 605Ah=2, at rest
+    (State.OPERATION_ENABLED, QUICK_STOP, [11], State.QUICK_STOP_ACTIVE),  # 605Ah=6 (maxon)
     (State.QUICK_STOP_ACTIVE, DISABLE_VOLTAGE, [12], State.SWITCH_ON_DISABLED),
     (State.FAULT, FAULT_RESET, [15], State.SWITCH_ON_DISABLED),
     (State.QUICK_STOP_ACTIVE, ENABLE, [16], State.OPERATION_ENABLED),  # 605Ah=6
@@ -207,6 +207,16 @@ def test_commanded_transitions(start: State, cw: int, numbers: list[int], end: S
     d.write_controlword(cw)
     assert transitions_of(d, before) == numbers
     assert d.state is end
+
+
+def test_with_605ah_2_a_quick_stop_at_rest_ends_in_switch_on_disabled() -> None:
+    """CiA 402's default option (not the EPOS4's): transition 12 follows 11 at once."""
+    d = make()
+    write(d, 0x605A, 2)
+    reach(d, State.OPERATION_ENABLED)
+    before = len(d.history)
+    d.write_controlword(QUICK_STOP)
+    assert transitions_of(d, before) == [11, 12] and d.state is State.SWITCH_ON_DISABLED
 
 
 @pytest.mark.parametrize(("start", "cw"), [

@@ -55,8 +55,9 @@ Decisions a client may notice (**chosen** where the manuals are silent):
   ACTIVE and a powered fault reaction) the axis coasts to rest on
   :attr:`Drive.coast_deceleration` (rpm/s, default 2000): the drive cannot
   brake it. Shutdown with 605Bh = 0 (default) and disable voltage do that.
-* 605Ah defaults to 2, CiA 402's default: the EPOS4's default is not in our
-  sources. Option codes 3, 4, 7, 8 (current/voltage limit) behave like 2 and 6.
+* 605Ah defaults to 6 (quick stop ramp 6085h, then stay in QUICK STOP ACTIVE),
+  as maxon's EDS for firmware 0110h gives it (CiA 402's own default is 2).
+  Option codes 3, 4, 7, 8 (current/voltage limit) behave like 2 and 6.
   605Bh = 0, 605Ch = 1, 605Dh = 1, 605Eh = 2 are the EPOS4 defaults as public
   EPOS4 configuration code quotes the Firmware Specification (6.2.97..6.2.100).
 * While a 605Bh/605Ch ramp runs, new set-points are ignored, enable
