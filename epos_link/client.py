@@ -1,17 +1,12 @@
 """EposClient: read and write objects of an EPOS4 and of the CANopen nodes behind it.
 
-The client is the only place with clocks, retries and locks; framing,
-messages and the segmented-transfer state machines are pure.
-
-Exchanges (guide 2.2.1: the EPOS4 is a slave and answers every request, one at
-a time):
-
-* one request in flight per client: a lock covers a whole call, retries and
-  every segment of a segmented transfer included, so threads sharing a client
-  never interleave frames;
-* before each request the transport's stale input is discarded;
-* each request has its own deadline, by default the device's 500 ms frame
-  timeout (guide 2.2.7, objects 0x2005/0x2006).
+The client builds on :class:`epos_link.link.Link`, which owns the exchange
+itself: one request in flight, each request's deadline, retries and reopening
+the transport, and dropping late answers (guide 2.2.1, 2.2.7). Those rules are
+stated in :mod:`epos_link.link`, with the code that implements them; this
+module adds what is asked for and how: objects, segmented transfers, NMT and
+the node scan. The two modules are the only places with clocks, retries and
+locks; framing, messages and the segmented-transfer state machines are pure.
 
 Gateway addressing (guide chapter 5): node id 0 is the device on the USB/RS232
 link, as is its own (DIP switch) node id; any other id is forwarded to that
@@ -19,50 +14,32 @@ node as an SDO. The gateway does not forward segmented writes (guide 2.1.2.2),
 so :meth:`EposClient.download` of more than 4 bytes to another node raises
 :class:`GatewayNotSupportedError` before anything is sent.
 
-Errors and retries:
+Segmented transfers (guide 2.1.1.2-2.1.1.3, 2.1.2.2-2.1.2.3) are one call
+each: the link's lock covers every segment, and its retry rules apply to the
+transfer as a whole. A segmented transfer that fails part-way is restarted
+from its Initiate request, never resumed; a device "Toggle error"
+(0x05030000) during one is retried the same way as a "CRC error".
 
-* communication errors (:class:`RemoteProtocolError`, :class:`EposTimeoutError`,
-  :class:`TransportError`) and a device answering "CRC error" (0x05040004,
-  our request arrived damaged) are retried, ``retries`` times (default 1);
-  after a :class:`TransportError` the next attempt first reopens the link;
-* a segmented transfer that fails part-way is restarted from its Initiate
-  request, never resumed; a device "Toggle error" (0x05030000) during one is
-  retried the same way;
-* any other :class:`DeviceError` and every :class:`LocalProtocolError` are final.
-
-Late answers: answers carry no request id, so an answer that comes after its
-request timed out could be taken for the next request's. A request that timed
-out in silence (no byte at all came back) leaves the link "out of step": before
-the next request the client waits up to ``late_answer_timeout`` (default
-500 ms, the device's frame timeout) for that late answer and drops it. A
-timeout with garbage received means the answer came and was damaged, so there
-is nothing to wait for; its :class:`EposTimeoutError` says so (``heard``), so a
-caller can tell a damaged answer from silence. A scan with a short per-node timeout therefore still
-costs, per absent node, the gateway's own SDO timeout.
+Scanning: a node that does not answer leaves the link out of step until the
+gateway's late answer comes (see "Late answers" in :mod:`epos_link.link`), so
+a scan with a short per-node timeout still costs, per absent node, the
+gateway's own SDO timeout.
 """
 from __future__ import annotations
 
-import logging
-import threading
-import time
-from dataclasses import asdict, dataclass, field
-from types import TracebackType
-from typing import Any, Callable, Iterable, Optional, Type, TypeVar, Union, cast
+from dataclasses import asdict, dataclass
+from typing import Any, Iterable, Optional, Union
 
-from .codes import MAX_SEGMENT, ErrorCode, NmtCommand, OpCode
+from .codes import MAX_SEGMENT, ErrorCode, NmtCommand
 from .errors import (
-    CrcError,
     DeviceError,
     EposTimeoutError,
     GatewayNotSupportedError,
-    JunkBytesError,
     LocalProtocolError,
-    MessageFormatError,
     RemoteProtocolError,
     TransportError,
-    TruncatedFrameError,
 )
-from .framing import NEED_DATA, Frame, FrameDecoder
+from .link import DEFAULT_RETRIES, DEFAULT_TIMEOUT, WAKE_EARLY, ClientStats, Link
 from .messages import (
     ANSWER_TYPES,
     AnyAnswer,
@@ -76,33 +53,11 @@ from .messages import (
 from .segmented import DEFAULT_MAX_LENGTH, SegmentedRead, SegmentedWrite
 from .transports.base import Transport
 
-_log = logging.getLogger(__name__)
-T = TypeVar("T")
-
-DEFAULT_TIMEOUT = 0.5  # guide 2.2.7: RS232/USB frame timeout, 500 ms by default
-DEFAULT_RETRIES = 1
 DEFAULT_SCAN_TIMEOUT = 0.1
-READ_CHUNK = 4096  # one read takes whatever has arrived, up to a few frames
-# The shortest answer frame: DLE STX, op code, length, the 4-byte error code that
-# every answer starts with, CRC (guide 2.2.2 frame, 2.1 answers).
-MIN_ANSWER_FRAME = 10
-# An answer's frame size where the guide fixes it: ReadObject answers Len 4 words,
-# error answers included (2.1.1.1; fixtures/client_error_answer.txt). Other answers
-# vary (segmented) or are the shortest (10 bytes).
-_ANSWER_FRAME: dict[type, int] = {ReadObjectAnswer: 14}
-# The first wait for an answer ends this many bytes before its end. A thread that
-# slept through the whole exchange (2 ms at 115200 Bd) wakes up slower than one
-# that woke just before the last bytes came: status polls (node.sdo.upload in a
-# loop) on the simulator in its own process over a pty at 115200 Bd, 427 against
-# 438 ReadObject/s (medians of 6 runs of 2 s, waiting for 14 against 12 bytes
-# first). An adapter that hands over a whole answer in one USB packet has it all
-# at the first wake-up anyway.
-WAKE_EARLY = 2
 _FRAME_CACHE_LIMIT = 4096
 
-# "CRC error": the device got our request damaged; sending it again is right.
-_RETRY_CODES = frozenset({ErrorCode.CRC_ERROR})
-# Within a segmented transfer a lost answer desynchronises the toggle bit.
+# Within a segmented transfer a lost answer desynchronises the toggle bit; "CRC
+# error" (our request arrived damaged) is retried as for any request (epos_link.link).
 _RETRY_CODES_SEGMENTED = frozenset({ErrorCode.CRC_ERROR, ErrorCode.TOGGLE_ERROR})
 
 NMT_COMMANDS: dict[str, NmtCommand] = {
@@ -114,19 +69,6 @@ NMT_COMMANDS: dict[str, NmtCommand] = {
 }
 # A reset may stop the device before it answers; sending it twice would reset twice.
 _NO_RETRY_NMT = frozenset({NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION})
-
-
-@dataclass
-class ClientStats:
-    """What the link cost: calls made, retries spent, and the errors that caused them."""
-
-    calls: int = 0
-    retries: int = 0
-    failures: dict[str, int] = field(default_factory=dict)  # error type name -> count
-
-    def failed(self, exc: BaseException) -> None:
-        name = type(exc).__name__
-        self.failures[name] = self.failures.get(name, 0) + 1
 
 
 @dataclass(frozen=True)
@@ -159,7 +101,7 @@ def _check_node(node: int) -> None:
         raise LocalProtocolError(f"node id {node!r} is not 0..127")
 
 
-class EposClient:
+class EposClient(Link):
     """A thread-safe client over one :class:`Transport`; closing it closes the transport.
 
     ``gateway_node_id`` is the connected device's own node id, when known: a
@@ -170,29 +112,13 @@ class EposClient:
                  timeout: float = DEFAULT_TIMEOUT, retries: int = DEFAULT_RETRIES,
                  segment_size: int = MAX_SEGMENT, max_upload: int = DEFAULT_MAX_LENGTH,
                  late_answer_timeout: float = DEFAULT_TIMEOUT) -> None:
-        if timeout <= 0:
-            raise ValueError("timeout must be positive")
-        if retries < 0:
-            raise ValueError("retries must be 0 or more")
+        super().__init__(transport, timeout=timeout, retries=retries,
+                         late_answer_timeout=late_answer_timeout)
         if gateway_node_id is not None:
             _check_node(gateway_node_id)
-        self.transport = transport
         self.gateway_node_id = gateway_node_id
-        self.timeout = timeout
-        self.retries = retries
         self.segment_size = segment_size
         self.max_upload = max_upload
-        self._lock = threading.Lock()
-        self._decoder = FrameDecoder()
-        self._needs_reopen = False
-        self._late_answer_due = False
-        self.late_answer_timeout = late_answer_timeout
-        self.stats = ClientStats()
-        # Called (on the calling thread) each time the client starts to wait on the
-        # link: once a request frame has been written (its answer takes at least the
-        # request's wire time), and before it waits for a late answer. A caller may
-        # use that time (tcp_bridge.bus.workers hands a finished reply to its event loop).
-        self.on_wait: Optional[Callable[[], None]] = None
         # Encoded ReadObject frames and their names: the hot path encodes nothing.
         self._read_frames: dict[tuple[int, int, int], tuple[bytes, str]] = {}
 
@@ -219,136 +145,7 @@ class EposClient:
         return cls(transport, gateway_node_id=gateway_node_id, timeout=timeout, retries=retries,
                    late_answer_timeout=late_answer_timeout)
 
-    # --- context and life cycle ----------------------------------------------
-
-    def close(self) -> None:
-        self.transport.close()
-
-    def __enter__(self) -> "EposClient":
-        return self
-
-    def __exit__(self, exc_type: Optional[Type[BaseException]], exc: Optional[BaseException],
-                 tb: Optional[TracebackType]) -> None:
-        self.close()
-
-    # --- one exchange, one call ----------------------------------------------
-
-    def _exchange(self, frame: bytes, answer_type: Any, timeout: float, what: str = "") -> Any:
-        """Send one request frame and return its decoded answer; no retries here.
-
-        ``what`` names the request in a timeout message."""
-        transport, decoder = self.transport, self._decoder
-        on_wait = self.on_wait
-        if self._late_answer_due:
-            if on_wait is not None:
-                on_wait()
-            self._swallow_late_answer()
-        transport.reset_input()
-        decoder.reset()
-        transport.write(frame)
-        if on_wait is not None:
-            on_wait()
-        # What to wait for before looking (SerialTransport.read_some): the answer's
-        # size where the guide fixes it, and never more than that, since a frame the
-        # decoder opened on noise may claim more than the real answer that follows.
-        first = _ANSWER_FRAME.get(answer_type, MIN_ANSWER_FRAME) - WAKE_EARLY
-        deadline = time.monotonic() + timeout
-        read, next_frame, feed = transport.read_some, decoder.next_frame, decoder.feed
-        heard = False
-        while True:
-            try:
-                item = next_frame()
-            except (JunkBytesError, TruncatedFrameError):
-                # Noise before the answer, or a DLE STX in it: the decoder has
-                # already resynchronised on the next frame, which may be ours.
-                continue
-            if item is NEED_DATA:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    held = decoder.pending
-                    # Silence, not garbage: the device may still answer (a gateway
-                    # waiting for an absent node's SDO takes its own time).
-                    self._late_answer_due = not heard
-                    raise EposTimeoutError(
-                        f"{what or 'request'}: no answer within {timeout:g} s"
-                        + (f" ({held} bytes of an incomplete answer)" if held else ""),
-                        heard=heard)
-                data = read(READ_CHUNK, left, min(decoder.wanted, first) if heard else first)
-                if data:
-                    heard = True
-                    feed(data)
-                continue
-            got = cast(Frame, item)
-            if got.opcode != OpCode.ANSWER:
-                raise MessageFormatError(
-                    f"op code 0x{got.opcode:02X} where an answer (0x00) was expected", got.data)
-            return answer_type.from_payload(got.data)
-
-    def _swallow_late_answer(self) -> None:
-        """Wait (at most ``late_answer_timeout``) for the answer to a request that
-        timed out in silence, and drop it.
-
-        The device answers every request (guide 2.2.1) and answers carry no
-        request id, so a late answer would otherwise be taken for the next
-        request's: after a silent timeout the link is out of step until it comes.
-        """
-        self._late_answer_due = False
-        decoder = self._decoder
-        deadline = time.monotonic() + self.late_answer_timeout
-        while True:
-            try:
-                if decoder.next_frame() is not NEED_DATA:
-                    _log.debug("dropped a late answer")
-                    return
-            except (CrcError, TruncatedFrameError, MessageFormatError):
-                return  # the late answer came, damaged: the link is in step again
-            except RemoteProtocolError:
-                continue
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return
-            data = self.transport.read(READ_CHUNK, left)
-            if data:
-                decoder.feed(data)
-
-    def _call(self, op: Callable[[float], T], timeout: Optional[float], retries: Optional[int],
-              retry_codes: frozenset[int] = _RETRY_CODES) -> T:
-        """Run ``op(timeout)`` under the lock, retrying communication errors."""
-        t = self.timeout if timeout is None else timeout
-        attempts = 1 + (self.retries if retries is None else retries)
-        with self._lock:
-            last: Optional[BaseException] = None
-            self.stats.calls += 1
-            for attempt in range(attempts):
-                if attempt:
-                    assert last is not None
-                    self.stats.retries += 1
-                    self.stats.failed(last)
-                    _log.debug("retry %d/%d after %s", attempt, attempts - 1, last)
-                try:
-                    if self._needs_reopen:
-                        self._reopen()
-                    return op(t)
-                except TransportError as exc:
-                    self._needs_reopen = True
-                    last = exc
-                except (RemoteProtocolError, EposTimeoutError) as exc:
-                    last = exc
-                except DeviceError as exc:
-                    if exc.code not in retry_codes:
-                        raise
-                    last = exc
-            assert last is not None
-            self.stats.failed(last)
-            raise last
-
-    def _reopen(self) -> None:
-        try:
-            self.transport.reopen()
-        except NotImplementedError as exc:
-            raise TransportError(f"{self.transport.url}: the link failed and cannot be reopened") from exc
-        self._needs_reopen = False
-        _log.info("reopened %s", self.transport.url)
+    # --- one request, one call -----------------------------------------------
 
     def request(self, message: Message, *, timeout: Optional[float] = None,
                 retries: Optional[int] = None) -> AnyAnswer:
@@ -523,4 +320,7 @@ def _where(message: Message) -> str:
     return name
 
 
-__all__ = ["DEFAULT_TIMEOUT", "DEFAULT_RETRIES", "EposClient", "NMT_COMMANDS", "NodeInfo"]
+# DEFAULT_TIMEOUT, DEFAULT_RETRIES, WAKE_EARLY and ClientStats live in epos_link.link;
+# they are re-exported here, where callers have always imported them from.
+__all__ = ["DEFAULT_TIMEOUT", "DEFAULT_RETRIES", "DEFAULT_SCAN_TIMEOUT", "WAKE_EARLY",
+           "ClientStats", "EposClient", "NMT_COMMANDS", "NodeInfo"]

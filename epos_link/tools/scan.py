@@ -9,7 +9,7 @@ Time per node: ``--node-timeout`` is how long to wait for each node's answer.
 An absent node behind the gateway is answered by the gateway itself, with
 0x05040000 "SDO protocol timed out", after its own SDO timeout; until then the
 EPOS4 takes no other request (guide 2.2.1). The client waits for that late
-answer (see :mod:`epos_link.client`) so it is never taken for the next node's;
+answer (see :mod:`epos_link.link`) so it is never taken for the next node's;
 that wait is ``--node-timeout`` too when it is longer than the client's default.
 So an absent node costs the longer of ``--node-timeout`` and the gateway's
 timeout: a shorter ``--node-timeout`` cannot make the gateway faster, and a

@@ -18,7 +18,7 @@ baud a byte takes 87 us; each wake-up costs CPU, and in the bridge it also
 costs a hand-over of Python's interpreter lock, on the path between one
 answer and the next request). The client asks for no more than the answer's
 size where the guide fixes it, less its last two bytes (a thread that slept
-through the whole exchange wakes up slower: ``epos_link.client.WAKE_EARLY``),
+through the whole exchange wakes up slower: ``epos_link.link.WAKE_EARLY``),
 and no more than the frame being received still needs
 (:attr:`FrameDecoder.wanted`); at the deadline whatever has arrived is
 returned, so a short or broken answer is seen as before. An answer that comes
