@@ -35,11 +35,16 @@ actual position, ...) are served by read hooks; objects with side effects
 drive model (:mod:`epos_link.simulator.drive`). ``before_access``, when set,
 runs before every checked access so a drive can catch up with a clock.
 Callers that use the store from several threads must serialise access.
+
+Store and restore parameters (1010h "save", 1011h "load", reset to the saved
+values) live in :mod:`epos_link.simulator.store_restore`, whose
+:class:`~epos_link.simulator.store_restore.SavedParameters` the store is
+built on; its names are re-exported here.
 """
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from importlib import resources
 from pathlib import Path
 from typing import Union
@@ -54,6 +59,15 @@ from canopen.objectdictionary import (
     datatypes,
 )
 
+from .store_restore import (
+    ABORT_STORE,
+    LOAD_SIGNATURE,
+    NOT_SAVED,
+    SAVE_SIGNATURE,
+    SavedParameters,
+    key_text,
+)
+
 __all__ = [
     "EDS_PATH",
     "SAVE_SIGNATURE",
@@ -65,6 +79,9 @@ __all__ = [
     "attach_local_node",
     "load_object_dictionary",
     "make_local_node",
+    # Also from store_restore (with the three signatures/sets above), importable here as before.
+    "ABORT_STORE",
+    "key_text",
 ]
 
 Value = Union[int, float, str, bytes]
@@ -83,15 +100,7 @@ ABORT_NO_OBJECT = 0x06020000
 ABORT_LENGTH = 0x06070010
 ABORT_NO_SUBINDEX = 0x06090011
 ABORT_RANGE = 0x06090030
-ABORT_STORE = 0x08000020
-
-# CiA 301 7.5.2.13 / 7.5.2.14: "save" and "load" in ISO 8859 as UNSIGNED32, little endian.
-SAVE_SIGNATURE = 0x65766173
-LOAD_SIGNATURE = 0x64616F6C
-
-# Writable entries that are commands, process data or the error history rather than parameters,
-# so "Save all parameters" leaves them out (indices, every subindex).
-NOT_SAVED: frozenset[int] = frozenset({0x1003, 0x1010, 0x1011, 0x2100, 0x6040, 0x607A, 0x60FF})
+# ABORT_STORE (08000020h), for a refused "save"/"load", is in store_restore.
 
 EDS_PATH: Path = Path(str(resources.files("epos_link.simulator") / "epos4.eds"))
 
@@ -148,11 +157,6 @@ def add_value_descriptions(od: ObjectDictionary) -> None:
                     var.add_value_description(value, text)
 
 
-def key_text(index: int, subindex: int) -> str:
-    """The snapshot key of an entry, e.g. ``"0x6081:00"``."""
-    return f"0x{index:04X}:{subindex:02X}"
-
-
 def _type_size(var: ODVariable) -> int | None:
     """Size in bytes of a fixed-size type, None for strings and domains."""
     if var.data_type in datatypes.DATA_TYPES:
@@ -160,13 +164,15 @@ def _type_size(var: ODVariable) -> int | None:
     return len(var) // 8
 
 
-class ObjectStore:
+class ObjectStore(SavedParameters):
     """Values of one object dictionary, with CiA 301 SDO access rules.
 
     ``read``/``write`` are the checked, byte-level SDO view. ``get``/``set``
     are the unchecked, typed view for the drive model itself (it may set
     read-only objects such as 1001h). ``read_value``/``write_value`` are the
-    checked view with typed values, handy in tests and tools.
+    checked view with typed values, handy in tests and tools. ``saved``,
+    ``on_save``, ``snapshot``, ``load_saved`` and ``reset`` (1010h/1011h)
+    come from :class:`~epos_link.simulator.store_restore.SavedParameters`.
     """
 
     def __init__(self, od: ObjectDictionary) -> None:
@@ -178,11 +184,7 @@ class ObjectStore:
         self._read_hooks: dict[tuple[int, int], ReadHook] = {}
         self._write_hooks: dict[tuple[int, int], WriteHook] = {}
         self.before_access: Callable[[], None] | None = None
-        # Parameters kept by the last "save" (keys as key_text); reset() restores them.
-        self.saved: dict[str, Value] = {}
-        # Called with a copy of ``saved`` after "save" or "load" so a simulator can persist it.
-        self.on_save: Callable[[dict[str, Value]], None] | None = None
-        self._install_store_objects()
+        self._install_store_objects()  # saved, on_save; 1010h/1011h (store_restore)
 
     # -- dictionary lookups ---------------------------------------------------
 
@@ -341,59 +343,6 @@ class ObjectStore:
             raise SdoAbortedError(ABORT_RANGE)
         if var.max is not None and value > var.max:
             raise SdoAbortedError(ABORT_RANGE)
-
-    # -- store and restore parameters (CiA 301 7.5.2.13, 7.5.2.14) ---------------
-
-    def _install_store_objects(self) -> None:
-        for index, handler in ((0x1010, self._on_save), (0x1011, self._on_load)):
-            if index in self.od and 1 in getattr(self.od[index], "subindices", {}):
-                # Read: bit 0 = 1, "the device saves parameters on command".
-                self.add_read_hook(index, 1, lambda: 1)
-                self.add_write_hook(index, 1, handler)
-
-    def snapshot(self) -> dict[str, Value]:
-        """The current parameters: writable entries outside :data:`NOT_SAVED`."""
-        out: dict[str, Value] = {}
-        for var in self._variables():
-            if var.writable and var.index not in NOT_SAVED:
-                out[key_text(var.index, var.subindex)] = self._values[(var.index, var.subindex)]
-        return out
-
-    def _on_save(self, value: Value) -> None:
-        if value != SAVE_SIGNATURE:
-            raise SdoAbortedError(ABORT_STORE)
-        self.saved = self.snapshot()
-        if self.on_save is not None:
-            self.on_save(dict(self.saved))
-
-    def _on_load(self, value: Value) -> None:
-        # CiA 301 7.5.2.14: defaults become effective after the next reset.
-        if value != LOAD_SIGNATURE:
-            raise SdoAbortedError(ABORT_STORE)
-        self.saved = {}
-        if self.on_save is not None:
-            self.on_save({})
-
-    def load_saved(self, saved: Mapping[str, Value]) -> None:
-        """Adopt a snapshot (e.g. read back from disk) and apply it, like a power-up.
-
-        Keys that are unknown, not writable or in :data:`NOT_SAVED` are ignored,
-        so a snapshot from an older EDS still loads.
-        """
-        self.saved = {k: v for k, v in saved.items() if k in self._saveable_keys()}
-        self.reset()
-
-    def _saveable_keys(self) -> "frozenset[str]":
-        return frozenset(key_text(v.index, v.subindex) for v in self._variables()
-                         if v.writable and v.index not in NOT_SAVED)
-
-    def reset(self) -> None:
-        """Values back to EDS defaults overlaid with the saved parameters (NMT reset node)."""
-        self._values = dict(self._defaults)
-        for var in self._variables():
-            key = key_text(var.index, var.subindex)
-            if key in self.saved:
-                self._values[(var.index, var.subindex)] = self.saved[key]
 
 
 def attach_local_node(node: canopen.LocalNode, store: ObjectStore) -> None:

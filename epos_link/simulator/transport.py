@@ -14,7 +14,7 @@ from urllib.parse import parse_qs, urlsplit
 from ..errors import TransportError
 from ..transports.base import Transport
 from .core import Epos4Simulator
-from .link import FaultInjector, LinkOptions
+from .link_server import FaultInjector, LinkOptions
 
 
 class SimTransport(Transport):

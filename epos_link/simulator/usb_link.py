@@ -3,7 +3,7 @@
 The USB bus is emulated by umockdev in a helper process (:mod:`.usb_testbed`,
 run under the system Python and the umockdev preload; its docstring says why). This module starts that
 helper, relays bytes with it and serves each unit with the same
-:class:`~.link.LinkServer` as the pty and TCP links, so the fault options
+:class:`~.link_server.LinkServer` as the pty and TCP links, so the fault options
 (drop, corrupt, delay, silent) and the trace behave alike on every link. One
 request/answer loop per unit; each answer of the device is one USB transfer.
 
@@ -35,7 +35,7 @@ from typing import IO, Any, Optional, Sequence
 
 from ..capture import CaptureWriter
 from ..errors import TransportError
-from .link import USB_FRAME_TIMEOUT, Device, LinkOptions, LinkServer
+from .link_server import USB_FRAME_TIMEOUT, Device, LinkOptions, LinkServer
 
 log = logging.getLogger(__name__)
 HELPER = Path(__file__).with_name("usb_testbed.py")
