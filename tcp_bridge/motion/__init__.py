@@ -2,8 +2,9 @@
 
 Every controlword the bridge writes, every NMT command it sends and every move
 it starts goes through :class:`Cia402` (power, modes and stop in
-:mod:`.drive`, the start of a move in :mod:`.start`, a node that another
-master put in NMT Stopped in :mod:`.nmt_stopped`). Commands cite this
+:mod:`.drive`, disable and NMT reset under rule 1 in :mod:`.lowering`, the
+start of a move in :mod:`.start`, a node that another master put in NMT
+Stopped in :mod:`.nmt_stopped`). Commands cite this
 module (:mod:`tcp_bridge.plan.axis`: 00, 04, 07, 16, 17, 85 and the slave
 moves of 29/30 and 90). Synchronous code for a bus worker thread; every wait
 polls the statusword (6041h) and is bounded by a
@@ -28,7 +29,7 @@ The safety rule
    a ramp (605Bh = 0), Disable Operation ramps first (605Ch = 1). A drive on its
    quick stop ramp is let finish before anything else (enable included), and no
    NMT reset goes to an axis whose velocity (606Ch) is not zero, as a drive that
-   lost power coasts. The guard is :meth:`Cia402._lower`.
+   lost power coasts. The guard is :meth:`Cia402._lower` (:mod:`.lowering`).
 2. **Motion starts only on a move command** (S00=1, 2, 3, 9; S90). Enable
    enters OPERATION ENABLED with halt set; stop (S00=8) sets halt and clears the
    target velocity 60FFh; a mode change (S07, or a move in another mode) halts

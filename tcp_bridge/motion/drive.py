@@ -1,22 +1,42 @@
 """One drive's CiA 402 power sequences under the safety rule (see :mod:`tcp_bridge.motion`).
 
-Enable, disable, NMT reset, fault reset, mode changes and stop, each bounded
-and checked on the statusword; the guard :meth:`Cia402._lower` that every
-lowering passes; and what the bridge knows about power cycles (rule 3).
+:class:`Cia402` holds enable, mode changes and stop, each bounded and checked
+on the statusword, and what the bridge knows about power cycles. Mixed into it:
+disable and NMT reset with the guard :meth:`Cia402._lower` that every lowering
+passes (rule 1) from :mod:`.lowering`, fault reset and the wait for a node that
+an NMT reset restarts from :mod:`.recovery`, the start of a move from
+:mod:`.start`.
+
+The rules as this module enforces them:
+
+* rule 1: an enabled axis is left exactly as it is by enable; a drive on its
+  quick stop ramp is let finish before enable goes on;
+* rule 2: enable enters OPERATION ENABLED with halt set (it rides along on every
+  step) and refuses a drive in a mode outside the allowed ones (a cyclic mode
+  would follow its set-point objects at once); a mode change of an enabled axis
+  halts it first and leaves halt set; stop (S00=8) sets halt and clears 60FFh;
+* rule 3: a fall back to SWITCH ON DISABLED from a powered state, in any
+  statusword the port reads, makes the next enable check and write the stored
+  parameters; a boot-up that does not answer the bridge's own reset, or values
+  that differ after such a fall back, are evidence of a power cycle, and the
+  next enable then resets the node (:mod:`.lowering`: never an enabled one),
+  waits for it and writes the parameters first;
+* rule 4: a halt that failed after a move is owed and sent before the next
+  command to that axis.
 """
 from __future__ import annotations
 
 import logging
 import time
-from enum import Enum
 from typing import Callable, Final, FrozenSet, List, Optional, Protocol
 
 from epos_link.cia402 import State, state_from_statusword
 
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, STATUSWORD,
-                            TARGET_VELOCITY, Cw, Deadline, Sw, Timing, decode_state)
+                            TARGET_VELOCITY, Cw, Deadline, Timing, decode_state)
 from ..errors import DeviceFailure
 from ..bus.sdo import NodeSilent, SdoPort
+from .lowering import CLIENT_REQUESTS, Lowering, SafetyRefusal, Why
 from .nmt_stopped import answering
 from .recovery import Recovery
 from .start import MoveStarts, OutcomeUnknown
@@ -26,24 +46,10 @@ log = logging.getLogger("tcp_bridge.motion")
 
 VELOCITY_ACTUAL: Final = 0x606C
 
-
-class Why(Enum):
-    """Who asked for a lowering of the state (rule 1)."""
-
-    CLIENT_DISABLE = "S04=0"
-    CLIENT_RESET_NODE = "S16=1"
-    POWER_CYCLE = "enable after a power cycle"  # never allowed on an enabled axis
-
-
-CLIENT_REQUESTS: Final = frozenset({Why.CLIENT_DISABLE, Why.CLIENT_RESET_NODE})
 # States from which a fall back to SWITCH ON DISABLED is worth a look (rule 3).
 _POWERED: Final = frozenset({State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
                              State.OPERATION_ENABLED})
 _BOOT_STATES: Final = frozenset({State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON})
-
-
-class SafetyRefusal(DeviceFailure):
-    """The bridge refused to lower the state of an axis or to reset it (rule 1)."""
 
 
 class Restore(Protocol):
@@ -59,7 +65,7 @@ class Restore(Protocol):
         """From now on :meth:`differs` answers None."""
 
 
-class Cia402(MoveStarts, Recovery):
+class Cia402(MoveStarts, Lowering, Recovery):
     """The sequences of one drive, through its :class:`~tcp_bridge.bus.sdo.SdoPort`.
 
     It watches every statusword the port reads (polls of R10, R04, R82 too), so
@@ -158,94 +164,6 @@ class Cia402(MoveStarts, Recovery):
         if state is not State.OPERATION_ENABLED:
             raise DeviceFailure(f"{self.port.name}: not enabled ({state.name})")
         return sw
-
-    # -- rule 1: lowering ------------------------------------------------------------
-
-    def _lower(self, why: Why, deadline: Deadline, state: Optional[State] = None) -> State:
-        """The guard every lowering passes: refuse on an enabled axis unless a client
-        asked; bring an enabled axis to rest first; let a quick stop finish."""
-        state = self.state() if state is None else state
-        if state is State.OPERATION_ENABLED:
-            if why not in CLIENT_REQUESTS:
-                raise SafetyRefusal(f"{self.port.name}: refused ({why.value}): the axis is "
-                                    "enabled and no client asked to disable or reset it")
-            self.bring_to_rest(deadline)
-        elif state is State.QUICK_STOP_ACTIVE:
-            self._end_of_quick_stop(deadline)
-        return state
-
-    def _end_of_quick_stop(self, deadline: Deadline) -> None:
-        # Still on its quick stop ramp, maybe: let it finish (sw bit 10).
-        self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
-                         "end of quick stop")
-
-    def bring_to_rest(self, deadline: Deadline) -> None:
-        """Halt (cw bit 8) and wait for standstill (sw bit 10) within ``deadline``.
-
-        An axis moved by the bridge's own profile (``rest`` set, issue 26) is
-        brought to rest by that profile's stop ramp instead: halt is not evaluated
-        in CSP and the drive need not set bit 10 there."""
-        if self.rest is not None:
-            self.rest(deadline)
-            return
-        self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)
-        self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
-                         "standstill after halt (the axis stays enabled and halted)")
-
-    def disable(self) -> None:
-        """S04=0: at rest first, then Disable Operation (07h), then Shutdown (06h)."""
-        deadline = Deadline(self._clock, self.timing.ack_timeout)
-        state = self._lower(Why.CLIENT_DISABLE, deadline)
-        if state is State.OPERATION_ENABLED:
-            self._step(Cw.SWITCH_ON, State.SWITCHED_ON, deadline)  # disable operation
-            state = State.SWITCHED_ON
-        if state is State.SWITCHED_ON:
-            self._step(Cw.SHUTDOWN, State.READY_TO_SWITCH_ON, deadline)
-        elif state is State.QUICK_STOP_ACTIVE:  # at rest (_lower): disable voltage
-            self._expect(None)
-            self._step(Cw.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED, deadline)
-        # not ready, switch on disabled, ready, fault: the drive function is already off
-
-    def reset_node(self, why: Why, wait: bool = False) -> None:
-        """NMT reset node (S16=1, or enable after a power cycle with ``wait``).
-
-        Never to an axis that still moves: an enabled one is halted first (a
-        client's S16 only), one that coasts with its power stage off (606Ch not
-        zero) is waited for. NMT is unconfirmed (CiA 301 7.2.8.3.2.1): S16
-        answers once it is sent; the power-cycle path waits for the node to boot
-        (:meth:`wait_for_node`). Either way the next enable writes the
-        parameters back first. A client's S16 to a node in NMT Stopped makes it
-        answer first (:mod:`.nmt_stopped`), so that it can be halted before the reset.
-        """
-        deadline = Deadline(self._clock, self.timing.ack_timeout)
-        found = answering(self.port, self.state) if why is Why.CLIENT_RESET_NODE else None
-        state = self._lower(why, deadline, found)
-        if state is not State.OPERATION_ENABLED:
-            self._wait_coasting(deadline)
-        self._expect(None)
-        grace = self.timing.reset_delay + self.timing.reset_timeout + 1.0
-        self._own_reset_until = self._clock() + grace
-        self.port.nmt_reset()
-        self.power_cycle_evidence = None
-        self.restore_pending = True
-        self._tell("reset")
-        if wait:
-            self.wait_for_node()
-            self._own_reset_until = self._clock() + 1.0  # its boot-up may still be in flight
-
-    def _wait_coasting(self, deadline: Deadline) -> None:
-        while True:
-            try:
-                if not self.coasting():
-                    return
-            except NodeSilent:
-                raise
-            except DeviceFailure:
-                return  # no velocity actual value (an abort): nothing to wait for
-            if deadline.expired():
-                raise SafetyRefusal(f"{self.port.name}: refused an NMT reset: the axis still "
-                                    "moves (606Ch is not zero)")
-            self._sleep(max(self.timing.poll_interval, 0.01))
 
     # -- enable (rules 1 to 3) -----------------------------------------------------------
 
