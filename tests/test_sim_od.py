@@ -413,7 +413,7 @@ def test_any_write_either_succeeds_or_aborts(key: tuple[int, int], data: bytes) 
 FORBIDDEN = {"serial", "usb", "socket", "asyncio", "threading", "time", "select"}
 
 
-@pytest.mark.parametrize("module", ["od", "drive", "motion"])
+@pytest.mark.parametrize("module", ["od", "store_restore", "drive", "statemachine", "motion"])
 def test_pure_modules_import_no_io(module: str) -> None:
     source = (Path(od_module.__file__).parent / f"{module}.py").read_text()
     for node in ast.walk(ast.parse(source)):

@@ -15,7 +15,7 @@ sends its sample every cycle (CAN: RPDO4 remapped to 60FFh alone; EtherCAT:
   and inverted on an inverted axis, like S00=3 of any axis.
 * On the bus worker, before the stream: the drive enabled and supervised, 60FFh
   mapped; a drive not yet in CSV gets 60FFh = 0 and then mode 9 (the mode
-  change brings it to rest first, :meth:`tcp_bridge.motion.drive.Drive.set_mode`),
+  change brings it to rest first, :meth:`tcp_bridge.motion.drive.Cia402.set_mode`),
   so entering CSV moves nothing; a drive already in CSV (a run that ended on a
   bus error holds its last set-point) starts the ramp from the 60FFh it holds.
   The ACK comes once the first set-points went out and the drive still shows
