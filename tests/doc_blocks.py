@@ -14,7 +14,9 @@ The convention, which docs authors follow (README.md repeats it in an HTML comme
   stopped (SIGINT, then SIGKILL) when the block ends. A program that serves
   until stopped (``epos-link sim``, ``epos-link monitor``) must be shown with
   ``&``. ``sleep`` and ``echo $?`` work as in a shell (``$?`` is the previous
-  command's status).
+  command's status), and so does ``kill [-SIGNAL] %N``: it signals the process
+  group of the block's Nth ``&`` command, as an interactive shell's job spec
+  does (``kill -9 %2`` kills the second one, as a crash would).
 * The environment: an HTML comment on the line before the fence,
   ``<!-- doc-test: ENV -->``, where ENV is
   ``none`` (the default: the block brings what it needs, e.g. its own ``&``
@@ -28,7 +30,9 @@ The convention, which docs authors follow (README.md repeats it in an HTML comme
   not depend on which blocks ran before it.
 * Every ``127.0.0.1:PORT`` (PORT not 0) of a block is rewritten, in its commands
   and outputs alike, to a free port the test picked (the environment's ports to
-  its own), so the docs show memorable ports and tests run side by side.
+  its own), so the docs show memorable ports and tests run side by side. So is
+  the PORT of a command's ``--port PORT`` and ``--maintenance-port PORT``
+  (``tcp-bridge serve``'s listening ports).
 * Commands run under bash in a fresh directory that holds links to the
   repository's top-level files (``fixtures/...``, ``tcp_bridge/example_axes.toml``
   resolve; files a block writes stay there), with HOME there too, ``NO_COLOR=1``,
@@ -62,6 +66,8 @@ TAG = re.compile(r"^\s*<!--\s*doc-test:\s*(.*?)\s*-->\s*$")
 HEREDOC = re.compile(r"<<-?\s*(['\"]?)(\w+)\1")
 BACKGROUND = re.compile(r"(?<![&>|])&\s*(#[^\n]*)?$")
 ADDRESS = re.compile(r"\b(127\.0\.0\.1|localhost):(\d+)\b")
+PORT_OPTION = re.compile(r"(--(?:maintenance-)?port[ =])(\d+)\b")
+JOB_KILL = re.compile(r"^kill(?:\s+-(\w+))?\s+%(\d+)\s*(?:#.*)?$")
 
 
 @dataclass
@@ -186,7 +192,7 @@ def rewrite_ports(block: Block, given: dict[int, int]) -> dict[int, int]:
     """The block's port map: the environment's ports, then a free one for each other."""
     ports = dict(given)
     for c in block.commands:
-        for m in ADDRESS.finditer(c.text):
+        for m in [*ADDRESS.finditer(c.text), *PORT_OPTION.finditer(c.text)]:
             port = int(m.group(2))
             if port and port not in ports:
                 ports[port] = free_port()
@@ -194,10 +200,29 @@ def rewrite_ports(block: Block, given: dict[int, int]) -> dict[int, int]:
 
 
 def localise(text: str, ports: dict[int, int]) -> str:
-    def one(m: re.Match[str]) -> str:
+    def address(m: re.Match[str]) -> str:
         port = int(m.group(2))
         return f"{m.group(1)}:{ports.get(port, port)}"
-    return ADDRESS.sub(one, text).replace(".venv/bin/", f"{BIN}/")
+
+    def option(m: re.Match[str]) -> str:
+        port = int(m.group(2))
+        return f"{m.group(1)}{ports.get(port, port)}"
+    text = PORT_OPTION.sub(option, ADDRESS.sub(address, text))
+    return text.replace(".venv/bin/", f"{BIN}/")
+
+
+def job_kill(text: str) -> tuple[signal.Signals, int] | None:
+    """``kill [-SIGNAL] %N``: the signal (SIGTERM unless named) and N. None for any other
+    command, and for a signal bash does not know (bash then says so itself)."""
+    m = JOB_KILL.match(text.strip())
+    if m is None:
+        return None
+    name = (m.group(1) or "TERM").upper()
+    try:
+        sig = signal.Signals(int(name)) if name.isdigit() else signal.Signals["SIG" + name.removeprefix("SIG")]
+    except (KeyError, ValueError):
+        return None
+    return sig, int(m.group(2))
 
 
 def environment(home: Path) -> dict[str, str]:
@@ -262,6 +287,17 @@ class Background:
                 pass
 
 
+def signal_job(background: list[Background], sig: signal.Signals, n: int) -> tuple[list[str], int]:
+    """A shell's ``kill -SIG %n``: the process group of the nth ``&`` command; what bash prints."""
+    if not 1 <= n <= len(background):
+        return [f"bash: kill: %{n}: no such job"], 1
+    try:
+        os.killpg(background[n - 1].proc.pid, sig)
+    except ProcessLookupError:
+        return [f"bash: kill: %{n}: no such job"], 1
+    return [], 0
+
+
 def run(block: Block, ports: dict[int, int], cwd: Path) -> list[str]:
     """Run every command; return a description of each mismatch (empty: the block holds)."""
     env = environment(cwd)
@@ -272,7 +308,11 @@ def run(block: Block, ports: dict[int, int], cwd: Path) -> list[str]:
         for c in block.commands:
             text = localise(c.text, ports)
             expected = [localise(line, ports) for line in c.expected]
-            if c.background:
+            kill = job_kill(text)
+            if kill is not None:
+                actual, status = signal_job(background, *kill)
+                ok = matches(expected, actual)
+            elif c.background:
                 job = Background(BACKGROUND.sub("", text), cwd, env)
                 background.append(job)
                 actual = job.first_lines(expected)

@@ -51,6 +51,18 @@ def test_example_file_loads_and_is_documented() -> None:
         assert name in text
 
 
+def test_the_heartbeat_example_is_a_table_for_the_simulator() -> None:
+    """tcp_bridge/example_heartbeat_axes.toml (docs/simulator.md runs it against
+    epos-link sim in tests/test_bridge_heartbeat_e2e.py): a canopen bus over socketcand
+    with a heartbeat, and the simulator's resolution, so check finds no units mismatch."""
+    t = AxisTable.load(EXAMPLE.parent / "example_heartbeat_axes.toml")
+    bus = t.buses["can1"]
+    assert bus.backend == "canopen" and bus.options["interface"] == "socketcand"
+    assert bus.options["heartbeat_ms"] == 100
+    assert [a.increments_per_revolution for a in t.axes.values()] == [simulated_increments_per_revolution()]
+    assert t.settings.state_file is None  # the scenario leaves no file behind
+
+
 def test_epos4_device_code_is_5() -> None:
     # Spec 3.5 stops at 4 (C_DC_COBLEY_CAN); 5 is this bridge's addition.
     assert [int(c) for c in DeviceCode] == [0, 1, 2, 3, 4, 5]

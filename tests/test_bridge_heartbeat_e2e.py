@@ -16,6 +16,11 @@ does not make the test flaky; the waits around them allow 10x.
 The simulator runs as ``epos-link sim --can-server``: its CAN bus is served
 over socketcand, which the bridge (canopen backend, ``interface =
 "socketcand"``) and the test's listener join.
+
+The same scenario as a user tries it, docs/simulator.md "Try the
+drive-stops-when-the-bridge-dies scenario", runs here too: its console block,
+command by command with the doc tests' runner (tests/doc_blocks.py), against
+the table the checkout ships (``tcp_bridge/example_heartbeat_axes.toml``).
 """
 from __future__ import annotations
 
@@ -30,6 +35,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 
+from tests.doc_blocks import ROOT, Block, parse, rewrite_ports, run, workdir
 from tests.helpers import psi_ask, wait_until
 
 PERIOD_MS = 100
@@ -171,3 +177,40 @@ def drive_at_rest(options: Dict[str, Any]) -> bool:
         return quick_stop_or_after and velocity == 0
     finally:
         network.disconnect()
+
+
+SCENARIO_DOC = ROOT / "docs" / "simulator.md"
+SCENARIO_TABLE = Path("tcp_bridge") / "example_heartbeat_axes.toml"
+TABLE_PORT = re.compile(r"^port = (\d+)$", re.MULTILINE)
+
+
+def scenario_block() -> Block:
+    """The console block of docs/simulator.md that serves the shipped heartbeat table."""
+    found = [b for b in parse(SCENARIO_DOC) if any(str(SCENARIO_TABLE) in c.text for c in b.commands)]
+    assert len(found) == 1, [b.id for b in found]
+    return found[0]
+
+
+def test_the_documented_scenario_runs_as_the_docs_show(tmp_path: Path) -> None:
+    """docs/simulator.md's block, run as test_docs_commands.py runs a block (free ports in
+    place of the documented ones), in a directory whose copy of the shipped table names
+    the simulator's rewritten CAN port: check finds the drive and names the heartbeat, a
+    velocity move turns it, and after ``kill -9`` of the bridge it is in QUICK STOP ACTIVE
+    at rest."""
+    block = scenario_block()
+    assert block.skip is not None and block.skip.startswith("tested by tests/" + Path(__file__).name)
+    texts = [c.text for c in block.commands]
+    assert any(t.startswith("kill -9 %") for t in texts), texts  # the point of the scenario
+    assert any("quick stop active" in line for c in block.commands for line in c.expected)
+    ports = rewrite_ports(block, {})
+    table = (ROOT / SCENARIO_TABLE).read_text()
+    (can_port,) = [int(p) for p in TABLE_PORT.findall(table)]
+    assert can_port in ports, f"the table's port {can_port} is not the block's --can-server port"
+    own = tmp_path / SCENARIO_TABLE.parent
+    own.mkdir()
+    for entry in (ROOT / SCENARIO_TABLE.parent).iterdir():
+        if entry.name != SCENARIO_TABLE.name:
+            (own / entry.name).symlink_to(entry)
+    (tmp_path / SCENARIO_TABLE).write_text(TABLE_PORT.sub(f"port = {ports[can_port]}", table))
+    failures = run(block, ports, workdir(tmp_path))
+    assert not failures, "\n\n".join(failures)

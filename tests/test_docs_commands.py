@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import signal
 import subprocess
 from pathlib import Path
 from typing import Iterator
@@ -18,8 +19,8 @@ from typing import Iterator
 import pytest
 
 from tests.doc_blocks import (BIN, DOCS, ENVIRONMENTS, ROOT, SKIP_REASONS, Background, Block,
-                              all_blocks, environment, free_port, matches, parse, rewrite_ports,
-                              run, workdir)
+                              all_blocks, environment, free_port, job_kill, localise, matches,
+                              parse, rewrite_ports, run, workdir)
 
 BLOCKS = all_blocks()
 README = ROOT / "README.md"
@@ -130,6 +131,39 @@ def test_a_wrong_output_fails_and_names_the_line(tmp_path: Path) -> None:
     block.path = ROOT / "x.md"  # ids are relative to the repository
     failures = run(block, {}, workdir(tmp_path))
     assert len(failures) == 1 and failures[0].startswith("x.md:6: $ echo $?") and "\n1" in failures[0]
+
+
+def test_kill_with_a_job_spec_signals_that_background_command(tmp_path: Path) -> None:
+    """``kill [-SIG] %N`` acts on the block's Nth ``&`` command, as in an interactive shell
+    (each command runs in a bash of its own, which has no jobs)."""
+    doc = tmp_path / "x.md"
+    doc.write_text("```console\n"
+                   "$ sleep 60 &\n"
+                   "$ bash -c 'trap \"echo TERM > got; exit 0\" TERM; echo ready; "
+                   "while :; do sleep 0.1; done' &\nready\n"
+                   "$ kill %2\n$ sleep 1\n$ cat got\nTERM\n"
+                   "$ kill -9 %1\n$ echo $?\n0\n"
+                   "$ kill -KILL %3\nbash: kill: %3: no such job\n$ echo $?\n1\n```\n")
+    (block,) = parse(doc)
+    block.path = ROOT / "x.md"
+    assert run(block, {}, workdir(tmp_path)) == []
+    assert job_kill("kill -9 %2") == (signal.SIGKILL, 2)
+    assert job_kill("kill -SIGINT %1   # stop it") == (signal.SIGINT, 1)
+    assert job_kill("kill %1") == (signal.SIGTERM, 1)
+    assert job_kill("kill -NOSUCH %1") is None and job_kill("kill 1234") is None
+
+
+def test_a_bridge_s_port_options_are_rewritten_like_addresses(tmp_path: Path) -> None:
+    doc = tmp_path / "x.md"
+    doc.write_text("```console\n$ serve --port 1912 --maintenance-port -1 &\n"
+                   "listening on 127.0.0.1:1912\n$ send 127.0.0.1:1912 --port=1913\n```\n")
+    (block,) = parse(doc)
+    ports = rewrite_ports(block, {})
+    assert sorted(ports) == [1912, 1913] and 1912 not in ports.values()
+    a, b = ports[1912], ports[1913]
+    assert localise(block.commands[0].text, ports) == f"serve --port {a} --maintenance-port -1 &"
+    assert localise(block.commands[0].expected[0], ports) == f"listening on 127.0.0.1:{a}"
+    assert localise(block.commands[1].text, ports) == f"send 127.0.0.1:{a} --port={b}"
 
 
 # --- the README leads --------------------------------------------------------------
