@@ -51,6 +51,18 @@ def test_example_file_loads_and_is_documented() -> None:
         assert name in text
 
 
+def test_the_example_table_says_it_is_for_real_hardware_and_names_the_simulator_s_resolution() -> None:
+    """Copied to the simulator, its 2048 inc/rev get "units mismatch" from check: its
+    opening comment says so before anyone copies it, with the simulator's own figure."""
+    head = EXAMPLE.read_text().split("\n[")[0]
+    assert "for real hardware" in head
+    assert f"{simulated_increments_per_revolution()} increments per" in head
+    assert "units mismatch" in head and "example_heartbeat_axes.toml" in head
+    ipr = {a.increments_per_revolution for a in AxisTable.load(EXAMPLE).axes.values()
+           if a.device is DeviceCode.C_DC_MAXON_EPOS4}
+    assert ipr == {2048}, "the comment's figure is the table's"
+
+
 def test_the_heartbeat_example_is_a_table_for_the_simulator() -> None:
     """tcp_bridge/example_heartbeat_axes.toml (docs/simulator.md runs it against
     epos-link sim in tests/test_bridge_heartbeat_e2e.py): a canopen bus over socketcand
