@@ -4,7 +4,7 @@ Each subcommand lives in its own module with ``add_arguments(parser)`` and
 ``run(args) -> int``; modules are imported only when their command runs, so a
 missing optional dependency breaks only the command that needs it.
 Exit codes: 0 success, 1 the device or the data reported an error,
-2 usage errors, timeouts, a silent EPOS4 and unreachable ports.
+2 usage errors (one line, :mod:`epos_link.cli_parser`), timeouts, a silent EPOS4 and unreachable ports.
 """
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ import argparse
 import importlib
 import sys
 from typing import Optional, Sequence
+
+from .cli_parser import OneLineParser
 
 # name -> (module, one-line help, one example)
 COMMANDS: dict[str, tuple[str, str, str]] = {
@@ -59,7 +61,7 @@ def _overview() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="epos-link", description="maxon EPOS4 USB/RS232 protocol tools",
         epilog=_overview(), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -11,7 +11,9 @@
     tcp-bridge --version
 
 Expected failures (a bad argument, a port in use, an unknown bind address, a
-bad axis table, a refused connection) print one line and exit with status 2;
+bad axis table, a refused connection) print one line and exit with status 2
+(argparse's errors too: :class:`epos_link.cli_parser.OneLineParser`); ``serve``
+opens every socket it listens on before it says "listening on";
 ``send`` exits 0 when every reply is ACK, 1 otherwise; ``check`` exits 0 when
 every axis answers as configured, 1 otherwise. A bus whose adapter or EPOS4
 cannot be opened does not stop ``serve``: it is logged, answers NAK and is
@@ -39,6 +41,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, Optional, Sequence
 
+from epos_link.cli_parser import OneLineParser
+
 from .access import LOOPBACK, is_loopback_bind
 from .access import describe as describe_networks
 from .tables.axes import AxisTable, ConfigError, Settings, simulated_table
@@ -62,6 +66,15 @@ DESCRIPTION = ("Serve the PSI \"TCP-IP to CANopen gateway\" protocol (rev 2.3) t
 def _fail(message: str) -> int:
     print(f"{PROG}: {message}", file=sys.stderr)
     return 2
+
+
+def _listen_error(exc: OSError) -> str:
+    """The OS's words for a failed listen: asyncio's create_server() rewrites strerror
+    ("error while attempting to bind on address ..."), and a resolver error (gaierror)
+    has a negative errno that os.strerror does not know."""
+    if exc.errno and exc.errno > 0:
+        return os.strerror(exc.errno)
+    return exc.strerror or str(exc)
 
 
 # --- serve ---------------------------------------------------------------------------
@@ -133,16 +146,28 @@ async def _serve(args: argparse.Namespace) -> int:
         raise ConfigError(f"--http {args.http[0]} serves other hosts: say which with --allow "
                           "CIDR (or [bridge] allow)")
     ports = list(options.ports)
+    # Every listening socket is open before "listening on" is printed: a
+    # --can-server's socketcand server (with its bus, in build_engine), the PSI
+    # ports, then --http. One that cannot be opened is one line, exit 2, after
+    # what was opened before it is closed (the engine closes its buses).
     engine = await asyncio.get_running_loop().run_in_executor(None, build_engine, table)
     server = BridgeServer(engine, options)
     try:
         await server.start()
     except OSError as exc:
         engine.close()
-        # asyncio rewrites a bind error's strerror; a resolver error (gaierror)
-        # has a negative errno that os.strerror does not know.
-        why = os.strerror(exc.errno) if exc.errno and exc.errno > 0 else exc.strerror or str(exc)
-        return _fail(f"cannot listen on {args.bind} port {'/'.join(map(str, ports))}: {why}")
+        return _fail(f"cannot listen on {args.bind} port {'/'.join(map(str, ports))}: "
+                     f"{_listen_error(exc)}")
+    status = None
+    if args.http is not None:  # the live status page (tcp_bridge.status)
+        from .status.http import open_status_page
+
+        try:
+            status = await open_status_page(engine, *args.http, allow=options.allow)
+        except OSError as exc:
+            await server.close()
+            return _fail(f"--http: cannot listen on {args.http[0]} port {args.http[1]}: "
+                         f"{_listen_error(exc)}")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
 
@@ -180,16 +205,7 @@ async def _serve(args: argparse.Namespace) -> int:
     if sim is not None:
         print(f"{PROG}: {sim.slaves} simulated EtherCAT slave(s) on veth {sim.peer}, "
               f"the master on {sim.interface}", flush=True)
-    status = None
-    if args.http is not None:  # the live status page (tcp_bridge.status)
-        from .status.http import open_status_page
-
-        try:
-            status = await open_status_page(engine, *args.http, allow=options.allow)
-        except OSError as exc:
-            await server.close()
-            return _fail(f"--http: cannot listen on {args.http[0]} port {args.http[1]}: "
-                         f"{exc.strerror or exc}")
+    if status is not None:
         print(f"{PROG}: status page at {status.url}", flush=True)
     await stop.wait()
     print(f"{PROG}: shutting down (a second signal exits at once)", flush=True)
@@ -225,7 +241,7 @@ def _send(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION)
+    p = OneLineParser(prog=PROG, description=DESCRIPTION)
     p.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("serve", help="serve the PSI gateway protocol (spec rev 2.3)")

@@ -8,7 +8,7 @@ import argparse
 import math
 
 from .access import Network, parse_network
-from .client import parse_address
+from .client import parse_address, refuse_url
 
 
 def _int(text: str, what: str) -> int:
@@ -53,6 +53,7 @@ def can_server(text: str) -> str:
     from epos_link.simulator.socketcand import parse_address
 
     try:
+        refuse_url(text)
         host, port = parse_address(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
@@ -70,10 +71,10 @@ def http_address(text: str) -> "tuple[str, int]":
     from .status.http import parse_address
 
     try:
+        refuse_url(text)
         return parse_address(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-
 
 
 def address(text: str) -> str:

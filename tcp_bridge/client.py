@@ -7,8 +7,10 @@ spec 2.2.2, decoded by :func:`tcp_bridge.wire.decode_reply`.
 """
 from __future__ import annotations
 
+import re
 import socket
 from typing import List, Sequence
+from urllib.parse import urlsplit
 
 from .errors import MalformedReply
 from .wire import REPLY_SIZE, Reply, decode_reply
@@ -21,7 +23,28 @@ def describe(reply: Reply) -> str:
     return f"{head}{value} {reply.status.name}"
 
 
+SCHEME = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://")  # RFC 3986 3.1, then "//" authority
+
+
+def refuse_url(text: str) -> None:
+    """ValueError for ``http://HOST:PORT``, ``socket://...``, ``tcp://...``: a HOST:PORT
+    option given a URL. Left alone, ``rpartition(":")`` would take ``http://HOST`` for
+    the host, and the resolver's "Name or service not known" would hide the mistake."""
+    if not SCHEME.match(text):
+        return
+    hint = ""
+    try:
+        parts = urlsplit(text)
+        if parts.port is not None:
+            host = parts.hostname or "127.0.0.1"
+            hint = f" (did you mean {'[' + host + ']' if ':' in host else host}:{parts.port}?)"
+    except ValueError:  # a port that is not a number: no suggestion
+        pass
+    raise ValueError(f"expected HOST:PORT, not a URL{hint}")
+
+
 def parse_address(text: str) -> tuple[str, int]:
+    refuse_url(text)
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit():
         raise ValueError(f"expected HOST:PORT, not {text!r}")
@@ -61,4 +84,4 @@ def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[R
     return replies
 
 
-__all__ = ["describe", "parse_address", "send", "split_requests"]
+__all__ = ["describe", "parse_address", "refuse_url", "send", "split_requests"]

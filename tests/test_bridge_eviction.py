@@ -214,4 +214,4 @@ def test_max_per_host_mistakes_are_one_line(tmp_path: object, args: List[str],
                            str(config), "--port", "0", "--maintenance-port", "-1", *args],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert message in proc.stderr.strip().splitlines()[-1]
+    assert proc.stderr.count("\n") == 1 and message in proc.stderr

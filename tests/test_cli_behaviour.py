@@ -45,7 +45,7 @@ def one_line_exit_2(out: subprocess.CompletedProcess[str]) -> str:
     """The stderr of a refused command line: exit 2, no traceback, one message line."""
     assert out.returncode == 2, out.stdout + out.stderr
     assert "Traceback" not in out.stderr
-    lines = [line for line in out.stderr.splitlines() if not line.startswith(("usage:", " "))]
+    lines = out.stderr.splitlines()
     assert len(lines) == 1, out.stderr
     return lines[0]
 

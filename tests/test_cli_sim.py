@@ -43,7 +43,8 @@ def test_read_and_write_against_the_simulator(served: str) -> None:
 def test_bad_arguments_are_messages(args: list[str]) -> None:
     out = cli("sim", *args)
     assert out.returncode == 2
-    assert "Traceback" not in out.stderr and "error" in out.stderr
+    assert out.stderr.startswith("epos-link sim: argument ") and "Traceback" not in out.stderr
+    assert out.stderr.endswith(" (see epos-link sim --help)\n") and out.stderr.count("\n") == 1
 
 
 def test_port_in_use_is_a_message() -> None:

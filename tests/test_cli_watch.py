@@ -136,4 +136,5 @@ def test_the_docs_show_the_captured_screen() -> None:
 def test_the_url_is_required_and_objects_are_not() -> None:
     out = cli("watch")
     assert out.returncode == 2
-    assert out.stderr.splitlines()[-1] == "epos-link watch: error: the following arguments are required: URL"
+    assert out.stderr == ("epos-link watch: the following arguments are required: URL "
+                          "(see epos-link watch --help)\n")

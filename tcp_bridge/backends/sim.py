@@ -54,7 +54,7 @@ def _start_can_server(bus: str, options: Dict[str, Any], simulator: Any) -> Any:
     try:
         return SocketcandServer(simulator.channel, host, port).start()
     except OSError as exc:
-        raise ConfigError(f"bus {bus}: can_server cannot listen on {host}:{port}: "
+        raise ConfigError(f"bus {bus}: can_server: cannot listen on {host} port {port}: "
                           f"{listen_error(exc)}") from None
 
 
