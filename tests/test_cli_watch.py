@@ -9,7 +9,7 @@ import socket
 import subprocess
 import sys
 import threading
-from typing import Iterator
+from typing import Callable, Iterator
 
 import pytest
 
@@ -138,3 +138,69 @@ def test_the_url_is_required_and_objects_are_not() -> None:
     assert out.returncode == 2
     assert out.stderr == ("epos-link watch: the following arguments are required: URL "
                           "(see epos-link watch --help)\n")
+
+
+def test_a_dead_link_is_one_status_line_and_watch_recovers_when_it_is_back() -> None:
+    """The simulator goes away while watch runs, then comes back on the same port: the
+    rows say ``! link down`` (no class name, no cut cause), one line under the title says
+    why, RATE falls (successful reads only), AGE goes on growing, and the table comes back."""
+    import queue
+    import re
+    import time
+
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.link import TcpLink
+
+    sim = Epos4Simulator(1, [2])
+    link = TcpLink(sim).start()
+    port, url = link.port, link.url
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link", "watch", url, "--node", "2", "--period", "0.1",
+                             "Statusword", "Position actual value"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**_env(), "COLUMNS": "130"})
+    tables: "queue.Queue[list[str]]" = queue.Queue()
+
+    def collect() -> None:
+        assert proc.stdout is not None
+        table: list[str] = []
+        for line in proc.stdout:
+            if line.strip():
+                table.append(line.rstrip("\n"))
+            elif table:
+                tables.put(table)
+                table = []
+
+    def next_table(test: Callable[[list[str]], bool]) -> list[str]:
+        deadline = time.monotonic() + WAIT
+        while True:
+            table = tables.get(timeout=max(0.1, deadline - time.monotonic()))
+            if test(table):
+                return table
+            assert time.monotonic() < deadline, table
+
+    def rate(line: str) -> float:
+        return float(line.split()[-1].removesuffix("/s"))
+
+    def age(line: str) -> float:
+        return float(line.split()[-2].removesuffix("s"))
+
+    threading.Thread(target=collect, daemon=True).start()
+    try:
+        up = next_table(lambda t: len(t) == 4 and "switch on disabled" in t[2] and t[2].endswith("/s"))
+        assert rate(up[2]) > 0
+        link.close()
+        down = next_table(lambda t: t[1].startswith("! link down"))
+        assert down[1] == "! link down: connection refused; reconnecting at each read", down
+        row = re.compile(r"0x60\w\w/0x00  \S.*  ! link down +(inc +)?\d+\.\ds +\d+\.\d/s")
+        assert all(row.fullmatch(line) for line in down[3:]), down
+        later = next_table(lambda t: t[1].startswith("! link down") and age(t[3]) >= age(down[3]) + 0.5)
+        assert rate(later[3]) < rate(down[3]) and age(later[4]) > age(down[4]), (down, later)
+        assert "Error" not in "".join(later) and "~" not in "".join(later)
+        link = TcpLink(sim, port=port).start()  # back, on the same port
+        back = next_table(lambda t: len(t) == 4 and "switch on disabled" in t[2])
+        assert back[3].split()[-4:-2] == ["0", "inc"], back
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=WAIT)
+        link.close()
+        sim.close()
+    assert proc.returncode == 0 and err == "", err

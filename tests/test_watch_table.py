@@ -2,13 +2,15 @@
 age and rate from times the test gives, and that the module stays pure."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
 import pytest
 
-from epos_link.tools.watch_table import (RATE_WINDOW, Row, Watched, columns, fit, format_age, format_rate,
-                                         format_value, render, unit_of, velocity_unit)
+from epos_link.tools.watch_table import (LINK_DOWN, RATE_WINDOW, Layout, Row, Watched, columns, essential, fit,
+                                         fit_value, format_age, format_rate, format_value, link_cause, render,
+                                         unit_of, velocity_unit)
 
 STATUSWORD = Watched(0x6041, 0, "Statusword")
 POSITION = Watched(0x6064, 0, "Position actual value", "inc")
@@ -100,11 +102,42 @@ def test_rate_is_the_reads_per_second_over_the_window() -> None:
     for i in range(1, 11):  # ten more reads, one every 0.25 s
         row.reading(i, 100.0 + 0.25 * i)
     assert row.rate(102.5) == pytest.approx(4.0)
-    row.failure("timeout", 103.0)  # failures are not reads
-    assert row.rate(103.0) == pytest.approx(4.0)
-    # reads older than the window are forgotten; the rate needs two reads again
+    # nothing tried for longer than the window: no rate known
     assert row.rate(102.5 + RATE_WINDOW + 0.1) is None
     assert row.reads == 11
+
+
+def test_rate_counts_successful_reads_and_falls_to_zero_while_reads_fail() -> None:
+    """A dead link: reads go on being tried, every 0.25 s, and fail. The rate falls
+    and is 0.0/s once the window holds no success; the value's age goes on growing."""
+    row = Row(POSITION)
+    for i in range(11):
+        row.reading(1000 + i, 100.0 + 0.25 * i)  # the last value, 1010, read at 102.5
+    assert row.rate(102.5) == pytest.approx(4.0)
+    rates = []
+    for i in range(1, 41):  # ten seconds of failures
+        now = 102.5 + 0.25 * i
+        row.failure(LINK_DOWN, now)
+        rates.append(row.rate(now))
+        assert row.age(now) == pytest.approx(now - 102.5)  # from the last good value
+    assert rates[0] == pytest.approx(10 / 2.75)  # ten successes over 100.25..102.75
+    assert all(b <= a for a, b in zip(rates, rates[1:]))  # falling...
+    assert rates[-1] == 0.0 and format_rate(rates[-1]) == "0.0/s"  # ...to 0
+    assert row.shown_value() == "! link down"
+    row.reading(1010, 113.0)  # back: the same value, so the age still counts from 102.5
+    assert row.shown_value() == "1010" and row.age(113.0) == pytest.approx(10.5)
+    # one success since the last read tried before the window (at 107.75)
+    assert row.rate(113.0) == pytest.approx(1 / 5.25)
+    for i in range(1, 41):
+        row.reading(1010, 113.0 + 0.25 * i)
+    assert row.rate(123.0) == pytest.approx(4.0)
+
+
+def test_a_period_longer_than_the_window_still_has_a_rate() -> None:
+    row = Row(POSITION)
+    for i in range(4):
+        row.reading(i, 10.0 * i)
+    assert row.rate(30.0) == pytest.approx(0.1)
 
 
 @pytest.mark.parametrize("age, shown", [(0.0, "0.0s"), (0.04, "0.0s"), (9.9, "9.9s"), (9.96, "10s"),
@@ -185,11 +218,123 @@ def test_the_value_column_grows_and_never_shrinks() -> None:
 
 
 def test_a_narrow_screen_shortens_names_before_values() -> None:
-    name, value = columns(["Modes of operation display"], 65, 80)
-    assert (name, value) == (12, 25)
+    assert columns(["Modes of operation display"], 65, 80, 6) == Layout(12, 25)
     lines = render(rows_of_a_drive(), 1.0, 80)
     assert lines[1] == "0x6041/0x00  Statusword    0x0637 operation enabled~               1.0s    2.0/s"
     assert lines[2] == "0x6061/0x00  Modes of op~  3 profile velocity (pv)                 1.0s    2.0/s"
     # wide enough: the whole name
-    assert columns(["Modes of operation display"], 65, 120) == (26, 51)
-    assert columns(["Modes of operation display"], 65, 200) == (26, 65)  # no wider than the values
+    assert columns(["Modes of operation display"], 65, 120, 6) == Layout(26, 51)
+    assert columns(["Modes of operation display"], 65, 200, 6) == Layout(26, 65)  # no wider than the values
+
+
+# -- a number is never cut ---------------------------------------------------------------------
+
+
+def test_the_first_word_is_the_part_never_cut() -> None:
+    assert essential("1867234") == 7
+    assert essential("0x0437 operation enabled, voltage enabled") == len("0x0437")
+    assert essential("! 0x06020000 Object does not exist error") == len("! 0x06020000")
+    assert essential("! timeout") == len("! timeout")
+
+
+@pytest.mark.parametrize("value, width, shown", [
+    ("1867234", 10, "1867234   "),
+    ("1867234", 7, "1867234"),
+    ("1867234", 6, "######"),  # never 18672~
+    ("0x0437 operation enabled, voltage enabled, target reached", 44, "0x0437 operation enabled, voltage enabled~  "),
+    ("0x0437 operation enabled, voltage enabled, target reached", 30, "0x0437 operation enabled~     "),
+    ("0x0040 switch on disabled", 20, "0x0040~             "),  # never "switch on~", another state
+    ("0x0040 switch on disabled", 7, "0x0040~"),
+    ("0x0040 switch on disabled", 6, "0x0040"),
+    ("0x0040 switch on disabled", 5, "#####"),
+    ("! 0x06020000 Object does not exist error", 20, "! 0x06020000~       "),
+])
+def test_a_value_is_cut_only_after_its_number_or_a_comma(value: str, width: int, shown: str) -> None:
+    assert fit_value(value, width) == shown
+
+
+def moving_drive() -> list[Row]:
+    """The screen of the report: a drive in profile velocity mode, its position
+    past six digits."""
+    rows = [Row(STATUSWORD), Row(Watched(0x6061, 0, "Modes of operation display")), Row(POSITION),
+            Row(Watched(0x606C, 0, "Velocity actual value", "rpm")), Row(Watched(0x1001, 0, "Error register")),
+            Row(Watched(0x603F, 0, "Error code"))]
+    for t in (0.0, 0.25, 0.5):
+        for row, value in zip(rows, (0x0437, 3, 1867234 + int(t * 1000), 1000, 0, 0)):
+            row.reading(value, t)
+    return rows
+
+
+@pytest.mark.parametrize("width", range(16, 141))
+def test_every_number_is_whole_or_hashes_at_every_width(width: int) -> None:
+    lines = render(moving_drive(), 1.0, width)
+    assert all(len(line) <= width for line in lines)
+    numbers = {"0x6041": "0x0437", "0x6061": "3", "0x6064": "1867734", "0x606C": "1000", "0x1001": "0x00",
+               "0x603F": "0x0000"}
+    for line in lines[1:]:
+        number = numbers[line[:6]]
+        assert re.search(rf"  ({re.escape(number)}~?|#+)( |$)", line[11:]), (width, line)
+
+
+def test_at_60_columns_name_shrinks_and_rate_goes_before_a_number_is_cut() -> None:
+    lines = render(moving_drive(), 1.0, 60)
+    assert lines[0] == "OBJECT       NAME          VALUE           UNIT          AGE"
+    assert lines[1] == "0x6041/0x00  Statusword    0x0437~                      1.0s"
+    assert lines[2] == "0x6061/0x00  Modes of op~  3~                           1.0s"
+    assert lines[3] == "0x6064/0x00  Position ac~  1867734         inc          0.5s"
+    assert columns(["Modes of operation display"], 57, 60, 7) == Layout(12, 14, rate=False)
+
+
+def test_the_docs_show_the_60_column_layout() -> None:
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parent.parent / "docs" / "epos-link.md").read_text(encoding="utf-8")
+    block = "```text\n" + "\n".join(render(moving_drive()[:4], 1.0, 60)) + "\n```\n"
+    assert block in page
+
+
+@pytest.mark.parametrize("width, layout", [
+    (50, Layout(12, 12, age=False, rate=False)),   # then AGE
+    (40, Layout(7, 7, age=False, rate=False)),     # then NAME below its minimum...
+    (35, Layout(0, 11, age=False, rate=False)),    # ...and away: UNIT stays with the number
+    (30, Layout(8, 7, unit=False, age=False, rate=False)),  # then UNIT
+    (16, Layout(0, 3, unit=False, age=False, rate=False)),  # not even that: #####
+])
+def test_the_order_columns_give_way_in(width: int, layout: Layout) -> None:
+    assert columns(["Modes of operation display"], 57, width, 7) == layout
+
+
+def test_without_units_the_unit_column_goes_first() -> None:
+    assert columns(["Statusword"], 57, 60, 7, units=False) == Layout(12, 16, unit=False)
+    assert columns(["Statusword"], 57, 60, 7, units=True) == Layout(12, 14, rate=False)
+    assert columns(["Statusword"], 57, 200, 7, units=False) == Layout(12, 57)  # room: nothing goes
+
+
+# -- a link that failed ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("message, cause", [
+    ("cannot open socket://127.0.0.1:24571: Connection refused", "connection refused"),
+    ("read from socket://127.0.0.1:24571 failed: [Errno 104] Connection reset by peer", "connection reset by peer"),
+    ("socket://127.0.0.1:24571: connection closed by the peer (is another program connected to it? it serves "
+     "one host at a time)", "connection closed by the peer (is another program connected to it? it serves one "
+     "host at a time)"),
+    ("socket://127.0.0.1:24571 is closed", "closed"),
+    ("something else: EPOS4 gone", "something else: EPOS4 gone"),
+])
+def test_the_cause_of_a_link_failure_without_the_url(message: str, cause: str) -> None:
+    assert link_cause(message, "socket://127.0.0.1:24571") == cause
+
+
+def test_a_link_failure_is_one_status_line_never_cut() -> None:
+    rows = moving_drive()
+    for row in rows:
+        row.failure(LINK_DOWN, 1.0)
+    status = "! link down: connection refused; reconnecting at each read"
+    lines = render(rows, 1.0, 130, "epos-link watch socket://127.0.0.1:24571 node 2", status)
+    assert lines[1] == status and lines[2].startswith("OBJECT")
+    # the row: no class name, no cause (the status line has it); AGE from the last value,
+    # RATE the successes (two after the first of 0.0, 0.25, 0.5, 1.0) over 1 s
+    assert re.fullmatch(r"0x6041/0x00  Statusword +! link down +1\.0s +2\.0/s", lines[3]), lines[3]
+    narrow = render(rows, 1.0, 30, "", status)
+    assert narrow[:3] == ["! link down: connection", "refused; reconnecting at each", "read"]

@@ -36,9 +36,9 @@ POSITION = re.compile(r"^0x6064/0x00  Position actual value +(-?\d+) +inc ", re.
 class Pane:
     """One tmux session running one shell command."""
 
-    def __init__(self, command: str) -> None:
+    def __init__(self, command: str, width: int = WIDTH, height: int = HEIGHT) -> None:
         self.name = f"epos-watch-{os.getpid()}-{time.monotonic_ns() % 10**6}"
-        subprocess.run([TMUX, "new-session", "-d", "-s", self.name, "-x", str(WIDTH), "-y", str(HEIGHT),  # type: ignore[list-item]
+        subprocess.run([TMUX, "new-session", "-d", "-s", self.name, "-x", str(width), "-y", str(height),  # type: ignore[list-item]
                         command], check=True, timeout=WAIT)
 
     def capture(self) -> str:
@@ -126,5 +126,27 @@ def test_watch_shows_a_moving_drive_and_q_quits(drive_link: tuple[Epos4Simulator
             assert time.monotonic() < deadline
             time.sleep(0.1)
         assert after.read_text() == before.read_text()  # echo and line mode are back
+    finally:
+        pane.close()
+
+
+def test_a_narrow_terminal_never_cuts_a_number(drive_link: tuple[Epos4Simulator, str]) -> None:
+    """60 columns, as in the report (``1867~``, ``0x12~``, while UNIT, AGE and RATE kept
+    their room): NAME shrinks and RATE goes, and the numbers stay whole. A stale
+    $COLUMNS (ncurses programs export one; a tmux server started from one hands it to
+    every pane) does not override what the terminal says its width is."""
+    sim, url = drive_link
+    watch = f"{shlex.quote(sys.executable)} -m epos_link.cli watch {url} --node 2"
+    pane = Pane(f"cd {shlex.quote(os.getcwd())}; COLUMNS=130 {watch}; sleep 60", width=60, height=10)
+    try:
+        pane.wait_for("0x0040~")
+        start_a_velocity_move(sim)
+        screen = pane.wait_for(re.compile(r"^0x6041/0x00  Statusword    0x0437~ ", re.M))
+        header = next(line for line in screen.splitlines() if line.startswith("OBJECT"))
+        assert header.split() == ["OBJECT", "NAME", "VALUE", "UNIT", "AGE"], screen  # RATE made room
+        position = re.search(r"^0x6064/0x00  Position ac~  (-?\d+)(\S*) +inc +\d+\.\ds$", screen, re.M)
+        assert position and position.group(2) == "", screen  # the whole number, no ~
+        assert re.search(r"^0x606C/0x00  Velocity ac~  1000 +rpm ", pane.wait_for("1000"), re.M)
+        assert all(len(line) <= 60 for line in screen.splitlines())
     finally:
         pane.close()

@@ -24,12 +24,18 @@ in cbreak mode (no echo, one key at a time, Ctrl-C still a signal) so that a
 SIGHUP, an error), the terminal is given back as it was found, the table's last
 screen vanishing with the alternate screen as in ``top`` or ``less``.
 
+The width is the terminal's own, asked at each draw (a resize is followed), not
+$COLUMNS (see :func:`_terminal_size`).
+
 Not a terminal (**chosen**): when standard output is a pipe or file, one table
 per refresh is printed, plain, each followed by a blank line, until Ctrl-C or
 SIGTERM, as ``top -b`` does; a log of a drive is then one redirection away.
 ``--once`` prints one table and exits, on a terminal or not.
 
 Failures: a failed read shows in its row (``! timeout``) and the others go on;
+a failed link shows ``! link down`` in every row and why once, under the title
+(``! link down: connection refused; reconnecting at each read``), while the
+client reopens it at each read (:mod:`epos_link.link`) until it is back;
 if no object at all can be read in the first round and the EPOS4 on the link
 does not answer either, that is one line and exit 2, as for ``epos-link read``.
 Exit codes: 0 after ``q``, Ctrl-C or SIGTERM; with ``--once``, 0 when every
@@ -49,11 +55,11 @@ from types import FrameType
 from typing import Any, Callable, Iterator, Optional, TextIO
 
 from ..client import EposClient
-from ..errors import DeviceError, EposError, EposTimeoutError
+from ..errors import DeviceError, EposError, EposTimeoutError, TransportError
 from .access import Target, _is_number, _node, read_value, resolve_target
 from .common import add_link_options, add_url, device_silent, guarded, open_client, positive_float, require_device
 from .objects import load_directory
-from .watch_table import Row, Watched, render, unit_of, velocity_unit
+from .watch_table import LINK_DOWN, Row, Watched, link_cause, render, unit_of, velocity_unit
 
 DEFAULT_OBJECTS = ("0x6041", "0x6061", "0x6064", "0x606C", "0x1001", "0x603F")
 DEFAULT_PERIOD = 0.25
@@ -153,6 +159,7 @@ class Watch:
         self.rows = [Row(Watched(t.index, t.subindex, t.name or "", unit_of(t.index, t.subindex, velocity)))
                      for t in targets]
         self.failures: list[Optional[EposError]] = [None] * len(targets)
+        self.link_down: Optional[str] = None  # why, while the link itself fails
         self.first = clock()  # when the first round began
 
     def read(self, index: int) -> None:
@@ -166,12 +173,20 @@ class Watch:
         except EposTimeoutError as exc:
             self.failures[index] = exc
             row.failure("timeout", self.clock())
+        except TransportError as exc:
+            # The same for every row: each says "link down", the status line says why
+            # once. The client reopens the link at the next read (epos_link.link).
+            self.failures[index] = exc
+            self.link_down = link_cause(str(exc), self.client.transport.url)
+            row.failure(LINK_DOWN, self.clock())
+            return
         except EposError as exc:
             self.failures[index] = exc
-            row.failure(f"{type(exc).__name__}: {exc}", self.clock())
+            row.failure(str(exc) or type(exc).__name__, self.clock())
         else:
             self.failures[index] = None
             row.reading(value, self.clock())
+        self.link_down = None  # the link carried the request (even one that timed out): it is up
 
     def round(self, between: Callable[[], bool] = lambda: False) -> bool:
         """Read every row; ``between()`` is asked after each read, True stops the round
@@ -184,7 +199,8 @@ class Watch:
 
     def lines(self, width: int, title: str = "", *, live: bool = True) -> list[str]:
         """The table now; ``live=False``: ages as of each row's read (``--once``)."""
-        return render(self.rows, self.clock() if live else None, width, title)
+        status = f"! {LINK_DOWN}: {self.link_down}; reconnecting at each read" if self.link_down else ""
+        return render(self.rows, self.clock() if live else None, width, title, status)
 
     def exit_code(self) -> int:
         """Of ``--once``: 0 all read, 1 a device error code, 2 a timeout or link failure."""
@@ -274,6 +290,17 @@ def _width() -> int:
     return shutil.get_terminal_size((OFF_TERMINAL_WIDTH, 24)).columns
 
 
+def _terminal_size(out: TextIO) -> os.terminal_size:
+    """The size of the terminal drawn on, as the terminal says it (TIOCGWINSZ), not
+    $COLUMNS: an exported $COLUMNS is a size the terminal once had (ncurses programs
+    export it; a shell or tmux pane started from one inherits it) and would keep a
+    resized or narrow terminal's lines too wide, wrapping."""
+    try:
+        return os.get_terminal_size(out.fileno())
+    except (OSError, ValueError):
+        return shutil.get_terminal_size()
+
+
 def _rounds(first: float, period: float, clock: Callable[[], float]) -> Iterator[float]:
     """The start of each round after the one that began at ``first``: every ``period``
     s, never catching up on rounds missed while reads were slow (a late round starts
@@ -290,7 +317,7 @@ def _live(watch: Watch, args: argparse.Namespace, out: TextIO) -> int:
     with Screen(out, keys) as screen:
 
         def draw() -> None:
-            size = shutil.get_terminal_size()  # each time: the terminal may have been resized
+            size = _terminal_size(out)  # each time: the terminal may have been resized
             screen.draw(watch.lines(size.columns, title), size.lines)
 
         draw()
