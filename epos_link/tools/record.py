@@ -90,17 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def resolve(directory: ObjectDirectory, node: int, text: str) -> Target:
-    """OBJECT as ``read`` takes it: a name, INDEX or INDEX/SUB (INDEX:SUB)."""
-    m = re.fullmatch(r"\s*(-?(?:0[xX][0-9a-fA-F_]+|[0-9_]+))\s*(?:[/:]\s*(0[xX][0-9a-fA-F]+|[0-9]+))?\s*", text)
-    if m:
-        index = parse_int(m.group(1))
-        sub = parse_int(m.group(2)) if m.group(2) else 0
-        if not 0 <= index <= 0xFFFF or not 0 <= sub <= 0xFF:
-            raise LocalProtocolError(f"{text!r}: index 0..0xFFFF, subindex 0..0xFF")
-        info = directory.find(index, sub)
-    else:
-        info = directory.resolve(text)
-        index, sub = info.index, info.subindex
+    """OBJECT as ``read`` takes it: a name, INDEX or INDEX/SUB (:meth:`ObjectDirectory.locate`)."""
+    index, sub, info = directory.locate(text)
     if info is None or info.type is None:
         raise LocalProtocolError(f"0x{index:04X}/0x{sub:02X} is not in the object dictionary "
                                  f"({directory.source}): record needs its type (--eds FILE)")
