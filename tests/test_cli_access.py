@@ -80,6 +80,46 @@ def test_unknown_name_is_a_usage_error(dev: SocketResponder, capsys: pytest.Capt
     assert dev.requests == before
 
 
+def test_index_slash_subindex_as_watch_and_record_take_it(capsys: pytest.CaptureFixture[str]) -> None:
+    """docs/epos-link.md names objects "as `read` names them (..., `0x1018/4`)": read and
+    write take INDEX/SUBINDEX, and INDEX SUBINDEX as before, with the same answer."""
+    script = dict([read_pair(2, 0x1018, 4, (0x5E000002).to_bytes(4, "little")),
+                   write_pair(2, 0x6081, 0, (1500).to_bytes(4, "little"))])
+    with SocketResponder(script) as dev:
+        slash = cli(capsys, "read", dev.url, "2", "0x1018/4")
+        separate = cli(capsys, "read", dev.url, "2", "0x1018", "4")
+        written = cli(capsys, "write", dev.url, "2", "0x6081/0", "1500")
+    assert slash == separate == (0, "02 00 00 5E -> u32 1577058306 (0x5E000002)  "
+                                    "Identity object.Serial number\n", "")
+    assert written == (0, "wrote u32 1500 (0x000005DC) [DC 05 00 00] to node 2 0x6081/0x00 "
+                          "Profile velocity\n", "")
+
+
+def test_a_subindex_given_twice_is_refused_before_sending(dev: SocketResponder,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    before = dev.requests
+    code, out, err = cli(capsys, "read", dev.url, "1", "0x1018/4", "4")
+    assert (code, out) == (2, "") and err.count("\n") == 1
+    assert err.startswith("epos-link read: '0x1018/4' names its subindex")
+    assert dev.requests == before
+
+
+def test_an_unknown_name_says_how_objects_are_named(dev: SocketResponder,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = cli(capsys, "read", dev.url, "1", "no such object anywhere")
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith("epos-link read: no object named 'no such object anywhere'")
+    assert "INDEX/SUBINDEX (0x6064, 0x1018/4)" in err
+
+
+def test_read_help_lists_every_json_key(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["read", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for key in ("node", "index", "subindex", "name", "type", "value", "meaning", "raw", "data"):
+        assert f'"{key}"' in text, key
+
+
 def test_read_decimal_index_and_json(dev: SocketResponder, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = cli(capsys, "read", dev.url, "1", "24676", "0x0", "--json")
     assert code == 0

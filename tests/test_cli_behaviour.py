@@ -150,6 +150,19 @@ def test_a_missing_serial_port_is_named_once(tmp_path: Path) -> None:
     missing = str(tmp_path / "ttyACM9")
     line = one_line_exit_2(run("-m", "epos_link", "read", missing, "1", "0x1008", "0"))
     assert line.count(missing) == 1 and "No such file or directory" in line
+    assert "did you mean" not in line  # a device path is not taken for HOST:PORT
+
+
+@pytest.mark.parametrize("command", [["read", "{url}", "2", "0x6041"],
+                                     ["watch", "{url}", "--node", "2", "--once"],
+                                     ["record", "{url}", "--node", "2", "0x6041", "--csv", "-"]])
+def test_host_port_without_a_scheme_hints_at_socket(command: List[str]) -> None:
+    """127.0.0.1:PORT is opened as a device path (pyserial's rule for a URL without a
+    scheme); every command's one line says what was probably meant."""
+    url = "127.0.0.1:24571"
+    line = one_line_exit_2(run("-m", "epos_link", *(w.format(url=url) for w in command)))
+    assert line.endswith(f"cannot open {url}: No such file or directory "
+                         f"(did you mean socket://{url}?)"), line
 
 
 def test_an_unreachable_socket_is_named_once() -> None:

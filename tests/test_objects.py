@@ -92,3 +92,30 @@ def test_integer_round_trip(name: str, data: st.DataObject) -> None:
     encoded = typ.encode(value)
     assert len(encoded) == typ.size and typ.decode(encoded + b"\xEE" * 3) == value
     assert typ.parse(str(value)) == value
+
+
+@pytest.mark.parametrize("text, address", [
+    ("0x6064", (0x6064, None)), ("24676", (0x6064, None)), ("0x1018/4", (0x1018, 4)),
+    ("0x1018/0x04", (0x1018, 4)), (" 0x1018 : 4 ", (0x1018, 4)),
+    ("Position actual value", None), ("Identity object.Serial number", None), ("a/b", None)])
+def test_object_words_are_addresses_or_names(text: str, address: object) -> None:
+    from epos_link.tools.objects import parse_address
+
+    assert parse_address(text) == address
+
+
+@pytest.mark.parametrize("text, words", [("0x10000", "index is not 0..0xFFFF"),
+                                         ("0x1018/0x100", "subindex is not 0..0xFF"),
+                                         ("0x1018/four", "'four' is not a decimal")])
+def test_bad_addresses_say_what_is_wrong(od, text: str, words: str) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ObjectLookupError, match=words):
+        od.locate(text)
+
+
+def test_locate_is_one_parser_for_both_subindex_forms(od) -> None:  # type: ignore[no-untyped-def]
+    slash, separate = od.locate("0x1018/4"), od.locate("0x1018", 4)
+    assert slash == separate and slash[2].name == "Identity object.Serial number"
+    with pytest.raises(ObjectLookupError, match="names its subindex"):
+        od.locate("0x1018/4", 4)
+    with pytest.raises(ObjectLookupError, match=r"INDEX/SUBINDEX \(0x6064, 0x1018/4\)"):
+        od.locate("no such thing at all")

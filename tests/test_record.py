@@ -131,7 +131,8 @@ def test_ctrl_c_keeps_what_was_recorded() -> None:
     assert outcome.interrupted and [v for _, v in recorder.rows()] == [(1,), (2,), (3,), (4,)]
 
 
-def test_bad_objects_and_triggers_are_usage_errors(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_objects_and_triggers_are_usage_errors(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
     directory = load_directory(None, 2)
     targets = [resolve(directory, 2, "0x6064")]
     with pytest.raises(LocalProtocolError):
@@ -140,7 +141,7 @@ def test_bad_objects_and_triggers_are_usage_errors(capsys: pytest.CaptureFixture
     assert trigger == Crossing(1, 100.0, True) and len(targets) == 2  # added as a column
     with pytest.raises(LocalProtocolError):
         resolve(directory, 2, "Manufacturer device name")  # a string: not sampled
-    assert main(["record", "sim://", "--node", "0", "no_such_object"]) == 2
+    assert main(["record", "sim://", "--node", "0", "no_such_object", "--csv", str(tmp_path / "r.csv")]) == 2
     assert "no object named" in capsys.readouterr().err
 
 

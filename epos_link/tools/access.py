@@ -2,11 +2,12 @@
 
 ::
 
-    epos-link read  URL NODE (INDEX [SUBINDEX] | NAME) [--type T] [--eds FILE] [--json]
-    epos-link write URL NODE (INDEX [SUBINDEX] | NAME) VALUE [--type T] [--eds FILE]
+    epos-link read  URL NODE (INDEX [SUBINDEX] | INDEX/SUBINDEX | NAME) [--type T] [--eds FILE] [--json]
+    epos-link write URL NODE (INDEX [SUBINDEX] | INDEX/SUBINDEX | NAME) VALUE [--type T] [--eds FILE]
     epos-link nmt   URL NODE start|stop|preop|reset|reset-comm
 
-An object is named by index (0x6064 or 24676, subindex 0 when left out) or by
+An object is named by index (0x6064 or 24676, subindex 0 when left out; the
+subindex after a slash, 0x1018/4, or as the next argument) or by
 its name in the object dictionary (``"Position actual value"``,
 ``position_actual_value``, ``"Identity object.Serial number"``; see
 :mod:`epos_link.tools.objects`). The dictionary is the shipped EPOS4 EDS, or
@@ -57,7 +58,8 @@ def _object_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("node", metavar="NODE", type=_node,
                         help="CANopen node id: 0 = the connected EPOS4, 1..127 = via its gateway")
     parser.add_argument("object", metavar="INDEX|NAME",
-                        help='object index (0x6064 or 24676) or name ("Position actual value")')
+                        help='object index (0x6064 or 24676, or with its subindex 0x1018/4) '
+                        'or name ("Position actual value")')
 
 
 def _dictionary_options(parser: argparse.ArgumentParser) -> None:
@@ -74,7 +76,8 @@ def _add_read(parser: argparse.ArgumentParser) -> None:
     _dictionary_options(parser)
     parser.add_argument("--json", action="store_true",
                         help='print {"node", "index": "0x6041", "subindex": "0x00", "name", "type", "value", '
-                        '"meaning" (statusword: its CiA 402 state), "raw"}')
+                        '"meaning" (statusword: its CiA 402 state), "raw" (the value\'s bytes), '
+                        '"data" (every byte the device answered, padding included)}')
     add_link_options(parser)
 
 
@@ -112,33 +115,16 @@ class Target:
         return f"{where} {self.name}" if self.name else where
 
 
-def _is_number(text: str) -> bool:
-    try:
-        parse_int(text)
-    except argparse.ArgumentTypeError:
-        return False
-    return True
-
-
 def resolve_target(args: argparse.Namespace, subindex_text: Optional[str]) -> Target:
-    """INDEX [SUBINDEX] or NAME [SUBINDEX] against the dictionary; warns (stderr) when the
-    type is a guess."""
+    """INDEX [SUBINDEX], INDEX/SUBINDEX or NAME [SUBINDEX] against the dictionary
+    (:meth:`ObjectDirectory.locate`, the parser ``watch`` and ``record`` use too);
+    warns (stderr) when the type is a guess."""
     directory = load_directory(args.eds, max(args.node, 1))
     try:
         subindex = parse_int(subindex_text) if subindex_text is not None else None
     except argparse.ArgumentTypeError as exc:
         raise LocalProtocolError(f"SUBINDEX: {exc}") from None
-    if _is_number(args.object):
-        index = parse_int(args.object)
-        if not 0 <= index <= 0xFFFF:
-            raise LocalProtocolError(f"index {args.object} is not 0..0xFFFF")
-        sub = subindex or 0
-        info = directory.find(index, sub)
-    else:
-        info = directory.resolve(args.object, subindex)
-        index, sub = info.index, info.subindex
-    if not 0 <= sub <= 0xFF:
-        raise LocalProtocolError(f"subindex {sub} is not 0..0xFF")
+    index, sub, info = directory.locate(args.object, subindex)
     if args.type:
         typ = TYPES[args.type]
     elif info is not None and info.type is not None:

@@ -12,6 +12,11 @@ Policy:
   A subentry is ``RECORD.SUB`` (``"Identity object.Serial number"``), or its
   own name when only one object has it. An ambiguous or unknown name raises
   :class:`ObjectLookupError` naming the candidates.
+* An address is ``INDEX``, ``INDEX/SUB`` or ``INDEX:SUB`` (decimal or 0x-hex:
+  ``0x6064``, ``0x1018/4``); :meth:`ObjectDirectory.locate` is the one parser of
+  an OBJECT word for every command (``read``, ``write``, ``watch``, ``record``),
+  so all of them accept the same forms. A word whose part before the ``/`` is not
+  a number is a name (names may hold a ``/``).
 * Types are the CiA 301 data types (CiA 301 7.1.6, Table 44) under short
   names (``u32``, ``i16``, ``str``...). An object that is not in the
   dictionary has no type: the caller decides (and says) what it falls back to.
@@ -213,6 +218,33 @@ class ObjectInfo:
         return f"0x{self.index:04X}/0x{self.subindex:02X}"
 
 
+OBJECT_FORMS = ('name an object as the dictionary does ("Position actual value", '
+                'position_actual_value, RECORD.SUB) or by INDEX or INDEX/SUBINDEX (0x6064, 0x1018/4)')
+_ADDRESS = re.compile(r"\s*(-?(?:0[xX][0-9a-fA-F][0-9a-fA-F_]*|[0-9][0-9_]*))\s*(?:([/:])\s*(.*?))?\s*")
+
+
+def parse_address(text: str) -> Optional[tuple[int, Optional[int]]]:
+    """``INDEX``, ``INDEX/SUB`` or ``INDEX:SUB`` as numbers (SUB None when absent);
+    None when ``text`` is not an address but a name. Out of range or a SUB that is
+    not a number raises :class:`ObjectLookupError`."""
+    m = _ADDRESS.fullmatch(text)
+    if not m:
+        return None
+    index = _parse_number(m.group(1))
+    if not 0 <= index <= 0xFFFF:
+        raise ObjectLookupError(f"{text!r}: the index is not 0..0xFFFF")
+    if m.group(2) is None:
+        return index, None
+    try:
+        sub = _parse_number(m.group(3))
+    except LocalProtocolError:
+        raise ObjectLookupError(f"{text!r}: the subindex {m.group(3)!r} is not a decimal "
+                                f"or 0x-hex number") from None
+    if not 0 <= sub <= 0xFF:
+        raise ObjectLookupError(f"{text!r}: the subindex is not 0..0xFF")
+    return index, sub
+
+
 def _norm(name: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", name.lower()).strip("_")
 
@@ -279,6 +311,22 @@ class ObjectDirectory:
         info = self.find(index, subindex)
         return info.name if info else None
 
+    def locate(self, text: str, subindex: Optional[int] = None) -> tuple[int, int, Optional[ObjectInfo]]:
+        """An OBJECT word (an address or a name, module docstring) and a separate
+        SUBINDEX, if any: ``(index, subindex, entry)``, the entry None when the
+        dictionary lacks an addressed object (the caller says what it does then)."""
+        address = parse_address(text)
+        if address is None:
+            info = self.resolve(text, subindex)
+            return info.index, info.subindex, info
+        index, sub = address
+        if sub is not None and subindex is not None:
+            raise ObjectLookupError(f"{text!r} names its subindex: give no SUBINDEX after it")
+        sub = sub if sub is not None else (subindex if subindex is not None else 0)
+        if not 0 <= sub <= 0xFF:
+            raise ObjectLookupError(f"subindex {sub} is not 0..0xFF")
+        return index, sub, self.find(index, sub)
+
     def resolve(self, name: str, subindex: Optional[int] = None) -> ObjectInfo:
         """The entry called ``name`` (``subindex`` picks one of a record's)."""
         hits = self._names.get(_norm(name), [])
@@ -288,7 +336,8 @@ class ObjectDirectory:
         if not hits:
             close = difflib.get_close_matches(_norm(name), list(self._names), n=3, cutoff=0.6)
             hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else ""
-            raise ObjectLookupError(f"no object named {name!r} in {self.source or 'the dictionary'}{hint}")
+            raise ObjectLookupError(f"no object named {name!r} in {self.source or 'the dictionary'}"
+                                    f"{hint} ({OBJECT_FORMS})")
         index, sub = hits[0]
         if sub is None:
             obj = self.od[index]
@@ -342,5 +391,5 @@ def load_directory(path: Optional[str] = None, node_id: int = 1) -> ObjectDirect
     return _load(str(path or default_eds()), node_id)
 
 
-__all__ = ["ObjectDirectory", "ObjectInfo", "ObjectLookupError", "TYPES", "TYPE_BY_CODE", "TYPE_NAMES",
-           "ValueType", "default_eds", "load_directory", "meaning", "type_named"]
+__all__ = ["OBJECT_FORMS", "ObjectDirectory", "ObjectInfo", "ObjectLookupError", "TYPES", "TYPE_BY_CODE", "TYPE_NAMES",
+           "ValueType", "default_eds", "load_directory", "meaning", "parse_address", "type_named"]

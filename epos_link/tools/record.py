@@ -28,12 +28,13 @@ burst to catch up.
 
 Progress goes to standard error (a line per phase; on a terminal one line kept
 up to date); the summary to standard output. Ctrl-C writes what was recorded
-and exits 130.
+and exits 130. The outputs (at least one of ``--csv`` and ``--plot``) are
+checked before anything is sent and written after, each on its own
+(:mod:`epos_link.tools.record_output`).
 """
 from __future__ import annotations
 
 import argparse
-import importlib
 import re
 import sys
 import time
@@ -44,11 +45,12 @@ from ..client import EposClient
 from ..errors import DeviceError, EposError, LocalProtocolError
 from .access import Target, _node, read_value
 from .common import (add_link_options, add_url, guarded, non_negative_int, open_client,
-                     parse_float, parse_int)
+                     parse_float, parse_int, report)
 from .objects import TYPES, ObjectDirectory, load_directory
 from .recording import (SI_UNIT_VELOCITY, STATUSWORD, VELOCITY_OBJECTS, Channel, Crossing,
                         Immediate, MoveStart, Phase, Recorder, Sample, Schedule, Trigger,
-                        column_name, median_interval, unit_of, velocity_unit, write_csv)
+                        column_name, median_interval, unit_of, velocity_unit)
+from .record_output import PROG, check_outputs, write_outputs
 
 PROGRESS_EVERY = 0.25  # seconds between updates of a terminal's progress line
 
@@ -75,7 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trigger", default="now", metavar="WHEN",
                         help="now (default); move: the statusword shows a move starting; "
                         "OBJECT>LEVEL or OBJECT<LEVEL: the value crosses LEVEL upwards or downwards")
-    parser.add_argument("--csv", metavar="FILE", help="write the samples as CSV (- for standard output)")
+    parser.add_argument("--csv", metavar="FILE", help="write the samples as CSV (- for standard output); "
+                        "--csv or --plot is needed, and every FILE is checked before anything is sent")
     parser.add_argument("--plot", metavar="FILE", action="append", default=[],
                         help="draw the recording: FILE.png or .svg (matplotlib) or .html (self-contained); "
                         "may be given more than once")
@@ -90,17 +93,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def resolve(directory: ObjectDirectory, node: int, text: str) -> Target:
-    """OBJECT as ``read`` takes it: a name, INDEX or INDEX/SUB (INDEX:SUB)."""
-    m = re.fullmatch(r"\s*(-?(?:0[xX][0-9a-fA-F_]+|[0-9_]+))\s*(?:[/:]\s*(0[xX][0-9a-fA-F]+|[0-9]+))?\s*", text)
-    if m:
-        index = parse_int(m.group(1))
-        sub = parse_int(m.group(2)) if m.group(2) else 0
-        if not 0 <= index <= 0xFFFF or not 0 <= sub <= 0xFF:
-            raise LocalProtocolError(f"{text!r}: index 0..0xFFFF, subindex 0..0xFF")
-        info = directory.find(index, sub)
-    else:
-        info = directory.resolve(text)
-        index, sub = info.index, info.subindex
+    """OBJECT as ``read`` takes it: a name, INDEX or INDEX/SUB (:meth:`ObjectDirectory.locate`)."""
+    index, sub, info = directory.locate(text)
     if info is None or info.type is None:
         raise LocalProtocolError(f"0x{index:04X}/0x{sub:02X} is not in the object dictionary "
                                  f"({directory.source}): record needs its type (--eds FILE)")
@@ -229,27 +223,6 @@ class Progress:
 # --- the command ----------------------------------------------------------------------
 
 
-def _write_outputs(args: argparse.Namespace, channels: list[Channel], outcome: Outcome,
-                   title: str) -> list[str]:
-    rows = outcome.recorder.rows()
-    written = []
-    if args.csv:
-        if args.csv == "-":
-            write_csv(sys.stdout, channels, rows)
-        else:
-            with open(args.csv, "w", newline="", encoding="utf-8") as f:
-                write_csv(f, channels, rows)
-            written.append(args.csv)
-    if args.plot:
-        from .plot import panels, write_plot
-
-        found = panels(channels, rows)
-        for path in args.plot:
-            write_plot(path, found, title)
-            written.append(path)
-    return written
-
-
 def _summary(outcome: Outcome, channels: list[Channel], written: list[str]) -> str:
     rec = outcome.recorder
     times = [s.time for s in rec.samples]
@@ -273,18 +246,10 @@ def _summary(outcome: Outcome, channels: list[Channel], written: list[str]) -> s
 
 
 def run(args: argparse.Namespace) -> int:
-    for path in args.plot:
-        if not path.lower().endswith((".png", ".svg", ".html", ".htm")):
-            print(f"epos-link record: --plot {path}: a plot is .png, .svg or .html", file=sys.stderr)
-            return 2
-        if path.lower().endswith((".png", ".svg")):
-            try:
-                importlib.import_module("matplotlib")  # checked before anything is sent
-            except ImportError:
-                print("epos-link record: PNG and SVG plots need matplotlib: pip install "
-                      "'epos-link[plot]' (or pip install matplotlib); an .html plot needs nothing",
-                      file=sys.stderr)
-                return 2
+    refused = check_outputs(args)  # before anything is sent (record_output's docstring)
+    if refused is not None:
+        print(f"{PROG}: {refused}", file=sys.stderr)
+        return 2
 
     def body() -> int:
         directory = load_directory(args.eds, max(args.node, 1))
@@ -302,13 +267,19 @@ def run(args: argparse.Namespace) -> int:
             outcome = sample_loop(read_row, recorder, Schedule(args.period), progress=progress)
             progress.end()
         title = f"node {args.node}: " + ", ".join(ch.name for ch in channels)
-        written = _write_outputs(args, channels, outcome, title)
-        print(_summary(outcome, channels, written), file=sys.stderr if args.csv == "-" else sys.stdout)
+        written = write_outputs(args, channels, outcome.recorder.rows(), title)
+        print(_summary(outcome, channels, written.paths),
+              file=sys.stderr if args.csv == "-" else sys.stdout)
+        if written.failed:
+            print(written.failure_line(), file=sys.stderr)
         if outcome.error is not None:
-            raise outcome.error  # after the files are written: guarded() says what failed
+            code = report(PROG, outcome.error)  # after the files are written: what stopped it
+            return 2 if written.failed else code
+        if written.failed:
+            return 2
         return 130 if outcome.interrupted else 0
 
-    return guarded("epos-link record", body)
+    return guarded(PROG, body)
 
 
 __all__ = ["Outcome", "Progress", "add_arguments", "channels_of", "parse_trigger", "resolve",

@@ -56,7 +56,7 @@ from typing import Any, Callable, Iterator, Optional, TextIO
 
 from ..client import EposClient
 from ..errors import DeviceError, EposError, EposTimeoutError, TransportError
-from .access import Target, _is_number, _node, read_value, resolve_target
+from .access import Target, _node, read_value, resolve_target
 from .common import add_link_options, add_url, device_silent, guarded, open_client, positive_float, require_device
 from .objects import load_directory
 from .watch_table import LINK_DOWN, Row, Watched, link_cause, render, unit_of, velocity_unit
@@ -115,14 +115,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def resolve(args: argparse.Namespace, text: str) -> Target:
-    """One OBJECT word, resolved as ``epos-link read`` resolves INDEX [SUBINDEX] or NAME."""
-    head, sep, tail = text.partition("/")
-    if sep and _is_number(head):
-        text, subindex = head, tail
-    else:
-        subindex = None
+    """One OBJECT word (NAME, INDEX or INDEX/SUBINDEX), resolved as ``epos-link read`` resolves it."""
     one = argparse.Namespace(eds=args.eds, node=args.node, object=text, type=None)
-    return resolve_target(one, subindex)
+    return resolve_target(one, None)
 
 
 def _silent(client: EposClient, args: argparse.Namespace, exc: EposTimeoutError) -> None:

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import select
 import struct
 import time
@@ -98,7 +99,20 @@ def _open_hint(url: str, exc: BaseException) -> str:
     if code in _BUSY_ERRNOS:
         return (f"cannot open {url}: the port is busy: another program has it open "
                 f"(tcp-bridge, another epos-link command, a terminal program); stop it first")
-    return f"cannot open {url}: {_os_reason(exc)}"
+    return f"cannot open {url}: {_os_reason(exc)}{_socket_hint(url)}"
+
+
+# HOST:PORT as a user types it for a TCP link: a name or IPv4 address, or [IPv6].
+_HOST_PORT = re.compile(r"(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][A-Za-z0-9.-]*):[0-9]{1,5}")
+
+
+def _socket_hint(url: str) -> str:
+    """`` (did you mean socket://HOST:PORT?)`` for a URL without a scheme that looks
+    like HOST:PORT and is no file: without the scheme it is opened as a device path.
+    Every epos-link command opens its URL here, so all of them give the hint."""
+    if "://" in url or not _HOST_PORT.fullmatch(url) or os.path.exists(url):
+        return ""
+    return f" (did you mean socket://{url}?)"
 
 
 class SerialTransport(Transport):
