@@ -9,7 +9,9 @@ Rules:
    :attr:`CycleLoop.lock`; each holds it for one bounded exchange only.
    An SDO transfer therefore delays the next cycle by its length: the backend
    refuses an ``sdo_timeout`` that is not well below the slaves' process-data
-   watchdog, so a slow transfer can never trip it.
+   watchdog, so a slow transfer can never trip it. The lock serves the cycle
+   first (:class:`~tcp_bridge.backends.cycle_lock.CycleLock`): a burst of
+   transfers delays a cycle by one transfer, not by the burst.
 2. **The cycle** (:meth:`CycleLoop.step`, every ``cycle_ms`` on its own thread):
    cycle hooks run (a CSP set-point generator writes its next target), the output
    images are copied into the I/O map, ``send_processdata`` /
@@ -38,6 +40,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
+from .cycle_lock import CycleLock
+
 log = logging.getLogger("tcp_bridge.backends.ethercat")
 
 # pysoem state constants (SOEM ethercattype.h ec_state), repeated so the module
@@ -47,6 +51,7 @@ ERROR = ACK = 0x10
 STATE_NAMES = {NONE: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP",
                OP: "OP"}
 RECOVER_TIMEOUT_US = 2000  # SOEM EC_TIMEOUTRET: one exchange's wait
+LOCK_WAIT_LIMIT = 1.0  # s: the longest a transfer waits for a due cycle (cycle_lock)
 
 
 def state_name(state: int) -> str:
@@ -77,7 +82,7 @@ class CycleLoop:
         self.master = master
         self.slaves = slaves
         self.period = period
-        self.lock = threading.RLock()  # rule 1
+        self.lock = CycleLock(wait_limit=LOCK_WAIT_LIMIT)  # rule 1
         self.fresh = threading.Condition(threading.Lock())  # notified after each cycle
         self.stats = CycleStats()
         self.outputs: Dict[int, bytearray] = {p: bytearray(bytes(s.output)) for p, s in slaves.items()}
@@ -145,7 +150,7 @@ class CycleLoop:
 
     def step(self) -> int:
         """One cycle (rule 2), then a state check when needed (rule 3); the working counter."""
-        with self.lock:
+        with self.lock.priority():
             count = self.stats.cycles
             for hook in list(self._hooks):
                 try:
