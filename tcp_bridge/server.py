@@ -342,8 +342,13 @@ class BridgeServer:
         tasks = [c.task for c in self._connections]
         if tasks:
             _, pending = await asyncio.wait(tasks, timeout=self.options.close_grace)
-            if await cancel_and_wait(pending, 1.0):
-                log.warning("%d client connections still open after the close", len(pending))
+            for task in pending:
+                task.cancel()
+            if pending:  # one cancellation first: each closes its socket within 1 s
+                _, pending = await asyncio.wait(pending, timeout=1.5)
+            left = await cancel_and_wait(pending, 1.0)  # one whose cancellation was lost
+            if left:
+                log.warning("%d client connections still open after the close", len(left))
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(None, self.engine.close)
         self._closed.set()

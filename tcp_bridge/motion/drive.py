@@ -158,6 +158,25 @@ class Cia402(MoveStarts, Lowering, Recovery):
                                     f"(statusword 0x{sw:04X})")
             self._sleep(self.timing.poll_interval)
 
+    def write_while_enabled(self, word: int) -> None:
+        """Write a controlword that carries "enable operation" (every move step, halt
+        and handshake does) only while the drive shows OPERATION ENABLED.
+
+        In QUICK STOP ACTIVE with 605Ah = 5..8 (the EPOS4's default is 6, maxon's
+        EDS) that command is CiA 402-2 transition 16, back to OPERATION ENABLED: a
+        quick stop that another master, an input or the drive's heartbeat reaction
+        started while a move was being prepared would be undone, and the move
+        started anyway. Read just before the write, the state leaves one SDO round
+        trip for that race instead of the whole preparation; raises DeviceFailure
+        (the request's NAK) and writes nothing in any other state.
+        """
+        state = self.state()
+        if state is not State.OPERATION_ENABLED:
+            raise DeviceFailure(f"{self.port.name}: {state.name} (statusword read before a "
+                                "controlword with enable operation): not written, nothing "
+                                "started")
+        self.port.write(CONTROLWORD, 0, word)
+
     def require_enabled(self) -> int:
         sw = self.statusword()
         state = decode_state(sw)

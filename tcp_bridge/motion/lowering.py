@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Final, Optional
 
 from epos_link.cia402 import State
 
-from ..cia402_words import CONTROLWORD, Cw, Deadline, Sw
+from ..cia402_words import Cw, Deadline, Sw
 from ..errors import DeviceFailure
 from ..bus.sdo import NodeSilent
 from .nmt_stopped import answering
@@ -93,7 +93,10 @@ class Lowering:
         if self.rest is not None:
             self.rest(deadline)
             return
-        self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)
+        if self.state() is State.QUICK_STOP_ACTIVE:  # stopping already: never undo it
+            self._end_of_quick_stop(deadline)
+            return
+        self.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT)
         self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
                          "standstill after halt (the axis stays enabled and halted)")
 

@@ -147,7 +147,7 @@ class MoveStarts:
             halt = self.port.read(CONTROLWORD, 0) & Cw.HALT
             self.port.write(TARGET_POSITION, 0, what.target)
             # Bit 4 low (keeping halt as it is), so that the start write is an edge.
-            self.port.write(CONTROLWORD, 0, _pp_base(what) | halt)
+            self.write_while_enabled(_pp_base(what) | halt)
             self.wait_status(lambda sw: not sw & Sw.OP_MODE_12, deadline.time_left(),
                              "set-point acknowledge low")
         elif isinstance(what, VelocityMove):
@@ -155,7 +155,7 @@ class MoveStarts:
                 self.set_mode(Mode.PROFILE_VELOCITY, deadline)  # halts first: rule 2
         else:
             self.set_mode(Mode.HOMING, deadline)
-            self.port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # bit 4 low
+            self.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT)  # bit 4 low
         return what
 
     def _within_limits(self: "Cia402", target: int) -> None:  # type: ignore[misc]
@@ -203,7 +203,7 @@ class MoveStarts:
         word = (_pp_base(what) | Cw.NEW_SET_POINT if isinstance(what, PositionMove)
                 else Cw.ENABLE_OPERATION | Cw.NEW_SET_POINT)  # edge, halt released
         try:
-            self.port.write(CONTROLWORD, 0, word)
+            self.write_while_enabled(word)
         except NodeSilent as exc:
             log.warning("%s: no answer to the move's start write (%s); reading back",
                         self.port.name, exc)
@@ -250,7 +250,7 @@ class MoveStarts:
             if not arrived:
                 # It never arrived: nothing started, so sending it again is the first start.
                 try:
-                    self.port.write(CONTROLWORD, 0, word)
+                    self.write_while_enabled(word)
                 except NodeSilent:
                     pass  # read back again
                 continue
@@ -259,8 +259,14 @@ class MoveStarts:
     def _write_confirmed(self: "Cia402", index: int, value: int, deadline: Deadline) -> None:  # type: ignore[misc]
         """Write an object whose write may start motion; after a lost answer, read it
         back (writing again only when it certainly did not arrive)."""
+        def send() -> None:
+            if index == CONTROLWORD:
+                self.write_while_enabled(value)  # it carries enable operation
+            else:
+                self.port.write(index, 0, value)
+
         try:
-            self.port.write(index, 0, value)
+            send()
             return
         except NodeSilent as exc:
             log.warning("%s: no answer to the start write of 0x%04X (%s); reading back",
@@ -279,7 +285,7 @@ class MoveStarts:
                 raise DeviceFailure(f"{self.port.name}: 0x{index:04X} holds {held}, not "
                                     f"{value}: the move did not start")
             try:
-                self.port.write(index, 0, value)
+                send()
                 return
             except NodeSilent:
                 continue
@@ -301,7 +307,8 @@ class MoveStarts:
         if not isinstance(what, PositionMove):
             return
         try:
-            self._again(partial(self.port.write, CONTROLWORD, 0, _pp_base(what)), deadline)
+            # Only while enabled: a quick stop since the start must not be undone.
+            self._again(partial(self.write_while_enabled, _pp_base(what)), deadline)
         except DeviceFailure as exc:
             log.warning("%s: set-point handshake not closed (%s); the next move closes it",
                         self.port.name, exc)

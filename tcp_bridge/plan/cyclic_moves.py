@@ -28,7 +28,9 @@ from __future__ import annotations
 
 from typing import Callable, List, Optional, Sequence, Tuple
 
-from ..cia402_words import CONTROLWORD, MODES_DISPLAY, Cw, Deadline
+from epos_link.cia402 import State
+
+from ..cia402_words import MODES_DISPLAY, Cw, Deadline
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion.cyclic import CSP_MODE, CyclicSender
 from ..motion.profile import AxisLimits, VelocityRamp, plan_line
@@ -148,7 +150,8 @@ def install_rest(axis: AxisRuntime) -> None:
     def rest(deadline: Deadline) -> None:
         stop_cyclic(axis)
         wait_stopped(axis, deadline.time_left())
-        port.write(CONTROLWORD, 0, Cw.ENABLE_OPERATION | Cw.HALT)  # rule 2: halted from now
+        if drive.state() is State.OPERATION_ENABLED:  # a quick stop is never undone
+            drive.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT)  # rule 2: halted from now
         while port.read(VELOCITY_ACTUAL, 0) != 0:
             if deadline.expired():
                 raise DeviceFailure(f"{port.name}: still moving (606Ch) after its cyclic stop "

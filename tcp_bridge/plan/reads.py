@@ -133,10 +133,17 @@ def _object(r: Resolved) -> ReadPlan:
     return lambda: port.read(obj.index, obj.subindex)
 
 
+_POWER_ON = frozenset({State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE})
+
+
 def _inhibit(r: Resolved) -> ReadPlan:
     assert r.axis is not None
     drive = r.axis.need_drive()
-    return lambda: int(drive.state() is State.OPERATION_ENABLED)
+    # Spec 3.5, 04: "0 = Power OFF, 1 = Power ON". QUICK STOP ACTIVE keeps the power
+    # stage on (CiA 402-2 6.4.1; with 605Ah = 5..8, the EPOS4's default 6, it stays
+    # there at rest), so it answers 1 too: 0 would claim less than the drive holds.
+    # A move still needs OPERATION ENABLED (S04=1 ends the quick stop first).
+    return lambda: int(drive.state() in _POWER_ON)
 
 
 def _mode(r: Resolved) -> ReadPlan:

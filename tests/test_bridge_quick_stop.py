@@ -1,0 +1,107 @@
+"""A quick stop that another master, an input or the drive's heartbeat reaction
+starts while the bridge prepares or runs a move is never undone by the bridge.
+
+With quick stop option code 605Ah = 5..8 (the EPOS4's default 6, maxon's EDS) a
+drive stays in QUICK STOP ACTIVE at rest, and a controlword carrying "enable
+operation" takes it back to OPERATION ENABLED (CiA 402-2 transition 16). Every
+move step writes such a controlword, so each is written only while the drive
+shows OPERATION ENABLED (``Cia402.write_while_enabled``). Found by review: a
+quick stop during ``2S00=1``'s preparation was undone and the axis moved 15 mm.
+Here the quick stop arrives at a chosen request of the move, on the real epos
+path (tests/bridge_sim.py), as another master's SDO download on the drives' bus.
+"""
+from __future__ import annotations
+
+import time
+from typing import Iterator, List
+
+import pytest
+
+from epos_link.cia402 import State
+from epos_link.framing import decode_frames
+from epos_link.messages import WriteObject, decode_request
+from tcp_bridge.wire import Status
+from tests.bridge_sim import SimBridge
+
+NODE = 2
+QUICK_STOP = 0x000B  # CiA 402-2 6.4.1.2: quick stop command, bits 0..3 = x011 (bit 2 low)
+
+
+@pytest.fixture
+def bridge() -> Iterator[SimBridge]:
+    b = SimBridge(drives=(NODE,))
+    yield b
+    b.close()
+
+
+def quick_stop_on(bridge: SimBridge, index: int) -> List[int]:
+    """Quick-stop the drive as another master does, as soon as the bridge's write of
+    ``index`` to it goes out (before the drive executes it). Returns a list that gets
+    one entry when it fired."""
+    fired: List[int] = []
+    plain = bridge.transport.write
+
+    def write(data: bytes) -> int:
+        for frame in decode_frames(data):
+            try:
+                message = decode_request(frame)
+            except Exception:
+                continue
+            if (isinstance(message, WriteObject) and message.node == NODE
+                    and message.index == index and not fired):
+                fired.append(1)
+                bridge.other_master_write(NODE, 0x6040, 0, QUICK_STOP, 2)
+        return plain(data)
+
+    bridge.transport.write = write  # type: ignore[method-assign]
+    return fired
+
+
+def transitions(bridge: SimBridge) -> List[int]:
+    return [number for _, number, _ in bridge.drive(NODE).history]
+
+
+def test_the_maxon_default_keeps_a_quick_stopped_drive_in_quick_stop_active(bridge: SimBridge) -> None:
+    assert bridge.other_master_read(NODE, 0x605A, 0) == 6
+
+
+def test_a_quick_stop_during_a_position_move_s_preparation_is_not_undone(bridge: SimBridge) -> None:
+    """The quick stop lands as the target 607Ah goes out; the controlword writes that
+    follow (bit 4 low, then the start edge) each read the state first and refuse.
+    What remains is the round trip between that read and its write: a quick stop
+    landing exactly there is undone, as with any master that writes 6040h by SDO."""
+    bridge.ok(f"{NODE}S04=1", f"{NODE}S02=100")
+    fired = quick_stop_on(bridge, 0x607A)
+    reply = bridge.ask(f"{NODE}S00=1")
+    assert fired and reply.status is Status.NAK  # the move did not start: no ACK
+    time.sleep(0.3)  # a move of 100 mm would be well under way by now
+    drive = bridge.now(NODE)
+    assert drive.state is State.QUICK_STOP_ACTIVE and drive.position == 0
+    assert 16 not in transitions(bridge)  # never taken back to OPERATION ENABLED
+    assert drive.motion_starts == 0
+
+
+def test_a_quick_stop_during_a_velocity_start_is_not_undone(bridge: SimBridge) -> None:
+    bridge.ok(f"{NODE}S04=1", f"{NODE}S07=3", f"{NODE}S05=5")
+    fired = quick_stop_on(bridge, 0x60FF)
+    reply = bridge.ask(f"{NODE}S00=3")
+    assert fired and reply.status is Status.NAK
+    time.sleep(0.3)
+    drive = bridge.now(NODE)
+    assert drive.state is State.QUICK_STOP_ACTIVE and drive.velocity == 0
+    assert 16 not in transitions(bridge)
+
+
+def test_r04_says_power_on_in_quick_stop_active_and_s04_1_is_what_re_enables(bridge: SimBridge) -> None:
+    """Spec 3.5, 04: 0 = Power OFF, 1 = Power ON. The power stage stays on in QUICK
+    STOP ACTIVE, so R04 is 1 there; a move is still refused until a client's S04=1."""
+    bridge.ok(f"{NODE}S04=1")
+    bridge.other_master_write(NODE, 0x6040, 0, QUICK_STOP, 2)
+    assert bridge.now(NODE).state is State.QUICK_STOP_ACTIVE
+    assert bridge.ok(f"{NODE}R04") == "1"
+    bridge.ok(f"{NODE}S02=10")
+    assert bridge.ask(f"{NODE}S00=1").status is Status.NAK
+    assert bridge.now(NODE).state is State.QUICK_STOP_ACTIVE
+    bridge.ok(f"{NODE}S04=1")  # the client asks: the enable sequence leaves the quick stop
+    assert bridge.now(NODE).state is State.OPERATION_ENABLED
+    assert 16 not in transitions(bridge)  # through SWITCH ON DISABLED, not transition 16
