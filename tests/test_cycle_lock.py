@@ -111,3 +111,43 @@ def test_a_burst_of_sdo_transfers_does_not_stop_the_cycle() -> None:
         assert in_a_row <= 8, f"{in_a_row} uploads in a row without a cycle"
     finally:
         backend.close()
+
+
+def test_the_switch_interval_follows_the_shortest_running_cycle_and_comes_back() -> None:
+    """ethercat_cycle rule 5: a quarter of the shortest cycle while cycles run."""
+    import sys
+
+    from tcp_bridge.backends.ethercat_cycle import _SwitchInterval
+
+    class Loop:
+        def __init__(self, period: float) -> None:
+            self.period = period
+
+    before = sys.getswitchinterval()
+    switch = _SwitchInterval()
+    slow, fast = Loop(0.008), Loop(0.002)
+    try:
+        switch.enter(slow)  # type: ignore[arg-type]
+        assert sys.getswitchinterval() == min(before, 0.002)
+        switch.enter(fast)  # type: ignore[arg-type]
+        assert sys.getswitchinterval() == min(before, 0.0005)
+        switch.leave(fast)  # type: ignore[arg-type]
+        assert sys.getswitchinterval() == min(before, 0.002)
+        switch.leave(fast)  # type: ignore[arg-type]  # twice: no effect
+        switch.leave(slow)  # type: ignore[arg-type]
+        assert sys.getswitchinterval() == before
+    finally:
+        sys.setswitchinterval(before)
+
+
+def test_a_backend_s_cycle_sets_the_interval_and_its_close_restores_it() -> None:
+    import sys
+
+    before = sys.getswitchinterval()
+    backend = EthercatBackend(BusConfig("ethercat", "ethercat", MappingProxyType(
+        {"interface": "ecat0", "cycle_ms": 2})), soem=FakeSoem(count=1))
+    try:
+        assert sys.getswitchinterval() == min(before, 0.0005)
+    finally:
+        backend.close()
+    assert sys.getswitchinterval() == before
