@@ -77,6 +77,7 @@ from ..tables.axes import AxisConfig, BusConfig, ConfigError
 from . import ethercat_pdo as pdo
 from .ethercat_csp import CycleSender, EthercatSetpoints
 from .ethercat_cycle import INIT, OP, SAFEOP, CycleLoop, state_name
+from .ethercat_hold import ControlwordHold
 from .ethercat_node import EthercatNode, LinkDown, SlaveUnreachable
 
 log = logging.getLogger("tcp_bridge.backends.ethercat")
@@ -184,6 +185,7 @@ class EthercatBackend:
             log.info("bus %s: slave %d %s vendor 0x%08X product 0x%08X revision 0x%08X",
                      self.name, position, slave.name, slave.man, slave.id, slave.rev)
         self.layouts: Dict[int, Optional[pdo.Layout]] = {}
+        self.hold: Optional[ControlwordHold] = None
         if self.read_only:  # every object by SDO, in PREOP
             master.read_state()
             loop = CycleLoop(master, {}, opts["cycle_ms"] / 1000.0,
@@ -204,6 +206,8 @@ class EthercatBackend:
         for position, layout in self.layouts.items():
             if layout is not None:
                 self._seed(cycle, slaves[position], cycle.outputs[position], layout)
+        self.hold = ControlwordHold(cycle, self.layouts)  # ethercat_hold: never up by itself
+        cycle.add_hook(self.hold.check)
         cycle.start()
         try:
             self._to_op(master, cycle, opts["op_timeout"])

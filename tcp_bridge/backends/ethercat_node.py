@@ -78,6 +78,8 @@ class EthercatNode:
                 raise SdoAbortedError(0x06070010)
             with cycle.lock:
                 pdo.put(cycle.outputs[self.id], entry, bytes(data))
+                if (index, subindex) == (0x6040, 0) and self._bus.hold is not None:
+                    self._bus.hold.commanded(self.id)  # sent as written (ethercat_hold)
             if not cycle.wait_cycles(2, self._bus.sdo_timeout + 10 * cycle.period):
                 raise SlaveUnreachable(f"slave {self.id}: no process-data cycle carried it")
             self._reachable()
