@@ -19,13 +19,14 @@ from __future__ import annotations
 import asyncio
 from typing import Any, Iterable, Set
 
-RETRY: float = 0.25  # seconds between two cancellations: long enough for a task's own
-# clean-up (a socket's close handshake) to finish after the first
+RETRY: float = 0.25  # seconds between two cancellations, by default
 
 
-async def cancel_and_wait(tasks: Iterable["asyncio.Future[Any]"], timeout: float
-                          ) -> Set["asyncio.Future[Any]"]:
-    """Cancel ``tasks`` until each is done, for at most ``timeout`` seconds.
+async def cancel_and_wait(tasks: Iterable["asyncio.Future[Any]"], timeout: float, *,
+                          retry: float = RETRY) -> Set["asyncio.Future[Any]"]:
+    """Cancel ``tasks`` until each is done, for at most ``timeout`` seconds, waiting
+    ``retry`` seconds after each cancellation (a task whose clean-up takes time, such
+    as a socket's close handshake, needs a ``retry`` longer than that clean-up).
 
     Returns the tasks still running then (empty when all ended); never raises for
     the tasks' own outcomes, which their owners handle.
@@ -39,5 +40,5 @@ async def cancel_and_wait(tasks: Iterable["asyncio.Future[Any]"], timeout: float
             break
         for task in pending:
             task.cancel()
-        _, pending = await asyncio.wait(pending, timeout=min(RETRY, left))
+        _, pending = await asyncio.wait(pending, timeout=min(retry, left))
     return pending

@@ -158,7 +158,7 @@ class Cia402(MoveStarts, Lowering, Recovery):
                                     f"(statusword 0x{sw:04X})")
             self._sleep(self.timing.poll_interval)
 
-    def write_while_enabled(self, word: int) -> None:
+    def write_while_enabled(self, word: int, state: Optional[State] = None) -> None:
         """Write a controlword that carries "enable operation" (every move step, halt
         and handshake does) only while the drive shows OPERATION ENABLED.
 
@@ -168,9 +168,10 @@ class Cia402(MoveStarts, Lowering, Recovery):
         started while a move was being prepared would be undone, and the move
         started anyway. Read just before the write, the state leaves one SDO round
         trip for that race instead of the whole preparation; raises DeviceFailure
-        (the request's NAK) and writes nothing in any other state.
+        (the request's NAK) and writes nothing in any other state. ``state``: the
+        state the caller has just read for its own decision, so it is not read twice.
         """
-        state = self.state()
+        state = self.state() if state is None else state
         if state is not State.OPERATION_ENABLED:
             raise DeviceFailure(f"{self.port.name}: {state.name} (statusword read before a "
                                 "controlword with enable operation): not written, nothing "

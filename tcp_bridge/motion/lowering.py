@@ -93,10 +93,11 @@ class Lowering:
         if self.rest is not None:
             self.rest(deadline)
             return
-        if self.state() is State.QUICK_STOP_ACTIVE:  # stopping already: never undo it
+        state = self.state()
+        if state is State.QUICK_STOP_ACTIVE:  # stopping already: never undo it
             self._end_of_quick_stop(deadline)
             return
-        self.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT)
+        self.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT, state)
         self.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
                          "standstill after halt (the axis stays enabled and halted)")
 

@@ -150,8 +150,9 @@ def install_rest(axis: AxisRuntime) -> None:
     def rest(deadline: Deadline) -> None:
         stop_cyclic(axis)
         wait_stopped(axis, deadline.time_left())
-        if drive.state() is State.OPERATION_ENABLED:  # a quick stop is never undone
-            drive.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT)  # rule 2: halted from now
+        state = drive.state()
+        if state is State.OPERATION_ENABLED:  # a quick stop is never undone
+            drive.write_while_enabled(Cw.ENABLE_OPERATION | Cw.HALT, state)  # rule 2: halted
         while port.read(VELOCITY_ACTUAL, 0) != 0:
             if deadline.expired():
                 raise DeviceFailure(f"{port.name}: still moving (606Ch) after its cyclic stop "
