@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import socket
 import threading
-import time
 from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence
 
 from epos_link.client import EposClient
@@ -28,9 +27,9 @@ from epos_link.simulator.transport import SimTransport
 from tcp_bridge.tables.axes import AxisTable, BusConfig, simulated_increments_per_revolution
 from tcp_bridge.backends.epos import EposBackend
 from tcp_bridge.engine import Engine
-from tcp_bridge.wire import Reply, Status
+from tcp_bridge.wire import Reply
 from tcp_bridge.server import BridgeServer, ServerOptions
-from tests.helpers import psi_ask, wait_until
+from tests.helpers import AskOk, psi_ask, wait_until
 
 TIMING = {"ack_timeout": 2.0, "state_timeout": 1.0, "reset_timeout": 3.0, "reset_delay": 0.05,
           "poll_interval": 0.002}
@@ -96,7 +95,7 @@ class LossyTransport(SimTransport):
         self.simulator.receive(bytes(data))  # the device executes it; the answer is lost
 
 
-class SimBridge:
+class SimBridge(AskOk):
     """Simulator + bridge server on its own event loop thread + one TCP client."""
 
     def __init__(self, drives: Sequence[int] = (2, 3), *, gateway: int = 1,
@@ -154,20 +153,6 @@ class SimBridge:
 
     def ask(self, line: str) -> Reply:
         return psi_ask(self.sock, line)
-
-    def ok(self, *lines: str) -> str:
-        value = ""
-        for line in lines:
-            reply = self.ask(line)
-            assert reply.status is Status.ACK, (line, reply)
-            value = reply.value or ""
-        return value
-
-    def poll(self, line: str, want: str, timeout: float = 10.0) -> None:
-        deadline = time.monotonic() + timeout
-        while self.ok(line) != want:
-            assert time.monotonic() < deadline, f"{line} never became {want}"
-            time.sleep(0.01)
 
     # -- the drive's view ------------------------------------------------------------------
 

@@ -70,6 +70,28 @@ def wait_until(what: Callable[[], object], timeout: float = 10.0,
         time.sleep(0.005)
 
 
+class AskOk:
+    """``ok`` and ``poll`` for a test bridge whose ``ask(line)`` returns a Reply: one
+    copy for tests/bridge_sim.py and the EtherCAT engine tests."""
+
+    def ask(self, line: str) -> "Reply":
+        raise NotImplementedError
+
+    def ok(self, *lines: str) -> str:
+        """Ask each line; each must be ACKed; the last reply's value."""
+        from tcp_bridge.wire import Status
+
+        value = ""
+        for line in lines:
+            reply = self.ask(line)
+            assert reply.status is Status.ACK, (line, reply)
+            value = reply.value or ""
+        return value
+
+    def poll(self, line: str, want: str, timeout: float = 10.0) -> None:
+        wait_until(lambda: self.ok(line) == want, timeout, f"{line} never became {want}")
+
+
 @contextlib.contextmanager
 def canopen_node_on_simulator(node_id: int, node_class: Any = None) -> Iterator[Tuple[Any, Any]]:
     """An ``Epos4Simulator`` with drive ``node_id`` behind it, and a canopen node of

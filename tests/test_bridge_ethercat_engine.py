@@ -16,10 +16,10 @@ from tcp_bridge.tables.axes import AxisTable, BusConfig
 from tcp_bridge.wire import Reply, Status, decode_reply, parse_request
 from tests.bridge_sim import TIMING
 from tests.fake_soem import DriveSlave, FakeSoem
-from tests.helpers import wait_until
+from tests.helpers import AskOk, wait_until
 
 
-class EcatBridge:
+class EcatBridge(AskOk):
     def __init__(self) -> None:
         self.soem = FakeSoem(count=2, drives=True)
         options = {"backend": "ethercat", "interface": "ecat0", "cycle_ms": 1}
@@ -46,17 +46,6 @@ class EcatBridge:
         except Exception as exc:  # the engine raises on failure; the server answers NAK
             self.why = str(exc)
             return Reply(int(line[0]), line[1], int(line[2:4]), Status.NAK)
-
-    def ok(self, *lines: str) -> str:
-        value = ""
-        for line in lines:
-            reply = self.ask(line)
-            assert reply.status is Status.ACK, (line, reply)
-            value = reply.value or ""
-        return value
-
-    def poll(self, line: str, want: str) -> None:
-        wait_until(lambda: self.ok(line) == want, why=f"{line} never became {want}")
 
     def close(self) -> None:
         self.engine.close()

@@ -1,6 +1,7 @@
 """tcp_bridge.backends.cycle_lock: the cycle is served before a burst of transfers."""
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from types import MappingProxyType
@@ -115,8 +116,6 @@ def test_a_burst_of_sdo_transfers_does_not_stop_the_cycle() -> None:
 
 def test_the_switch_interval_follows_the_shortest_running_cycle_and_comes_back() -> None:
     """ethercat_cycle rule 5: a quarter of the shortest cycle while cycles run."""
-    import sys
-
     from tcp_bridge.backends.ethercat_cycle import _SwitchInterval
 
     class Loop:
@@ -141,8 +140,6 @@ def test_the_switch_interval_follows_the_shortest_running_cycle_and_comes_back()
 
 
 def test_a_backend_s_cycle_sets_the_interval_and_its_close_restores_it() -> None:
-    import sys
-
     before = sys.getswitchinterval()
     backend = EthercatBackend(BusConfig("ethercat", "ethercat", MappingProxyType(
         {"interface": "ecat0", "cycle_ms": 2})), soem=FakeSoem(count=1))
