@@ -187,7 +187,9 @@ def test_a_dead_bridge_ends_in_the_drives_quick_stop_not_a_jump(how: str) -> Non
     """The bridge dies (its set-point thread ends), or only the set-point thread stalls
     (blocked in a bus call) while the process lives: on a bus with cyclic axes that
     thread sends the heartbeat too, so either way the drives' consumers react."""
-    engine = build_engine(table(heartbeat_ms=20))  # the drives trip 60 ms after the last one
+    # The drives trip 600 ms after the last heartbeat: a 60 ms budget (heartbeat_ms=20)
+    # once tripped a drive before the move got going, on a loaded 2-core machine.
+    engine = build_engine(table(heartbeat_ms=200))
     release = threading.Event()
     try:
         backend = engine.backends[0]
