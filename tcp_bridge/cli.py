@@ -4,7 +4,7 @@
 
     tcp-bridge serve --config axes.toml [--bind ADDR --allow CIDR ...] [--port 1912]
                      [--maintenance-port 1913] [--idle-timeout 60] [--max-connections 64]
-                     [--max-per-host 32] [--http HOST:PORT]
+                     [--max-per-host 32] [--http HOST:PORT] [--epics PREFIX]
     tcp-bridge serve --simulate [--axes N] [--can-server HOST:PORT] [--ethercat N]
     tcp-bridge check --config axes.toml [--json]     (read-only, tcp_bridge.check)
     tcp-bridge send HOST:PORT "1R10" ["1R12" ...]
@@ -168,6 +168,25 @@ async def _serve(args: argparse.Namespace) -> int:
             await server.close()
             return _fail(f"--http: cannot listen on {args.http[0]} port {args.http[1]}: "
                          f"{_listen_error(exc)}")
+    epics = None
+    prefix = args.epics if args.epics is not None else table.epics_prefix
+    if prefix is not None:  # Channel Access motor records (tcp_bridge.epics, issue 33)
+        from .epics import missing
+        from .epics.names import check_part
+
+        why = missing()
+        try:
+            if why is not None:
+                raise ConfigError(why)
+            check_part(prefix, "--epics PREFIX")
+            from .epics.server import open_epics
+
+            epics = await open_epics(engine, prefix, allow=options.allow)
+        except (ConfigError, OSError) as exc:
+            if status is not None:
+                await status.close()
+            await server.close()
+            return _fail(str(exc) if isinstance(exc, ConfigError) else f"--epics: {exc}")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
 
@@ -207,8 +226,12 @@ async def _serve(args: argparse.Namespace) -> int:
               f"the master on {sim.interface}", flush=True)
     if status is not None:
         print(f"{PROG}: status page at {status.url}", flush=True)
+    if epics is not None:
+        print(f"{PROG}: {epics.describe()}", flush=True)
     await stop.wait()
     print(f"{PROG}: shutting down (a second signal exits at once)", flush=True)
+    if epics is not None:
+        await epics.close()
     if status is not None:
         await status.close()
     await server.close()
@@ -286,6 +309,10 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--http", type=http_address, metavar="HOST:PORT",
                    help="also serve a read-only live status page and its JSON (/api/axes) "
                         "on this address (PORT alone: 127.0.0.1; off unless given)")
+    s.add_argument("--epics", metavar="PREFIX",
+                   help="also serve every axis as an EPICS Channel Access motor record "
+                        "PREFIX+m<AxAddr> (or [epics] prefix); needs the [epics] extra; "
+                        "loopback only unless EPICS_CAS_INTF_ADDR_LIST says otherwise")
     s.add_argument("--state-file", metavar="FILE", help="where S-command parameters persist")
     s.add_argument("--debug", action="store_true", help="start with command 91 (debug print) on")
     s.add_argument("-v", "--verbose", action="count", default=0,

@@ -41,7 +41,7 @@ from .motion import Timing
 from .plan.axis import AxisRuntime
 from .plan.cyclic_moves import install_rest
 from .plan.job import Job
-from .plan.planner import plan, releasing
+from .plan.planner import plan, release, releasing
 from .plan.resolve import Resolved, resolve
 from .tables.axes import AxisConfig, AxisTable, ConfigError, DeviceCode
 from .tables.parameters import ParameterStore
@@ -171,6 +171,34 @@ class Engine:
             if value is BUSY:
                 value = await self.scheduler.queued(job, job if job.share is not None else None)
         return format_outcome(request, value)
+
+    async def execute_all(self, requests: Sequence[Request]) -> List[bytes]:
+        """Several requests of one client action (a CA put, :mod:`tcp_bridge.epics`):
+        all resolved back to back, so no other request falls between them in arrival
+        order, then run in order. A failure ends the rest unrun (their writes are
+        released as failed) and is raised."""
+        jobs: List[Job] = []
+        try:
+            for request in requests:
+                jobs.append(self.prepare(request))
+        except BaseException as exc:
+            for job in jobs:
+                release(job, exc)
+            raise
+        replies: List[bytes] = []
+        for n, (request, job) in enumerate(zip(requests, jobs)):
+            try:
+                with releasing(job):
+                    value = self.scheduler.at_once(job)
+                    if value is BUSY:
+                        value = await self.scheduler.queued(
+                            job, job if job.share is not None else None)
+            except BaseException as exc:
+                for later in jobs[n + 1:]:
+                    release(later, exc)
+                raise
+            replies.append(format_outcome(request, value))
+        return replies
 
     def execute_sync(self, request: Request) -> bytes:
         """Run a request in the caller's thread (tests, tools); raises on failure."""

@@ -145,6 +145,8 @@ class AxisConfig:
     # Spec 3.2 internal axis whose profile the bridge computes: "csp" (cyclic synchronous
     # position, streamed by tcp_bridge.motion.cyclic); None: the drive's own profile modes.
     cyclic: Optional[str] = None
+    # The EPICS motor record's name after the prefix (tcp_bridge.epics); None: m<AxAddr>.
+    epics_name: Optional[str] = None
 
     @property
     def bus(self) -> str:
@@ -199,6 +201,7 @@ class AxisTable:
     buses: Mapping[str, BusConfig]
     settings: Settings = Settings()
     source: str = field(default="axis table", compare=False)  # file name, for messages
+    epics_prefix: Optional[str] = None  # [epics] prefix: serve motor records (tcp_bridge.epics)
 
     def __post_init__(self) -> None:
         _validate(self)

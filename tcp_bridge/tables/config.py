@@ -39,9 +39,10 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on 3.10 only
     import tomli as tomllib  # type: ignore[import-not-found, no-redef, unused-ignore]
 
-TOP_LEVEL = ("bridge", "bus", "axis")
+TOP_LEVEL = ("bridge", "bus", "axis", "epics")
 AXIS_KEYS = ("addr", "device", "internal", "bus_offset", "node_id", "position_factor",
-             "parameters", IPR_KEY, "cyclic")
+             "parameters", IPR_KEY, "cyclic", "epics_name")
+EPICS_KEYS = ("prefix",)  # [epics]: tcp_bridge.epics
 # [bridge] keys: (check, description) by name; state_file and allow are special.
 POSITIVE = ("ack_timeout", "state_timeout", "reset_timeout", "idle_timeout", "probe_interval")
 NON_NEGATIVE = ("reset_delay", "poll_interval")
@@ -131,7 +132,19 @@ def from_mapping(data: Mapping[str, Any], *, base_dir: Optional[Path] = None,
             raise ConfigError(f"{where}: addr: AxAddr {axis.addr} appears twice")
         axes[axis.addr] = axis
     return AxisTable(MappingProxyType(dict(sorted(axes.items()))), MappingProxyType(buses),
-                     settings, source=source)
+                     settings, source=source,
+                     epics_prefix=_epics(data.get("epics", {}), f"{source}: [epics]"))
+
+
+def _epics(value: Any, where: str) -> Optional[str]:
+    """``[epics] prefix = "LAB:"``: serve every axis as a motor record (tcp_bridge.epics)."""
+    from ..epics.names import check_part  # pure
+
+    raw = _table(value, where)
+    check_keys(raw, EPICS_KEYS, where)
+    if "prefix" not in raw:
+        return None
+    return check_part(raw["prefix"], f"{where}: prefix")
 
 
 def _buses(value: Any, source: str) -> Dict[str, BusConfig]:
@@ -227,8 +240,13 @@ def _axis(row: Dict[str, Any], position: int, where: str) -> AxisConfig:
     cyclic = row.get("cyclic")
     if cyclic is not None and not isinstance(cyclic, str):
         raise ConfigError(f"{where}: cyclic: must be a string (\"csp\"), not {_shown(cyclic)}")
+    epics_name = row.get("epics_name")
+    if epics_name is not None:
+        from ..epics.names import check_part  # pure
+
+        check_part(epics_name, f"{where}: epics_name")
     return AxisConfig(addr, DeviceCode(device), internal, BusOffset(bus_offset), node_id, factor,
-                      MappingProxyType(params), ipr, cyclic)
+                      MappingProxyType(params), ipr, cyclic, epics_name)
 
 
 def _parameters(raw: Dict[str, Any], factor: int, where: str) -> Dict[int, Number]:
