@@ -19,6 +19,7 @@
 """
 from __future__ import annotations
 
+import asyncio
 import math
 from typing import Any, Awaitable, Callable, Dict, List, Tuple
 
@@ -26,8 +27,12 @@ from caproto import (AccessRights, ChannelAlarm, ChannelChar, ChannelData, Chann
                      ChannelEnum, ChannelFloat, ChannelInteger, ChannelShort, ChannelString,
                      SkipWrite)
 
+from caproto.server.common import HIGH_LOAD_TIMEOUT
+
 from . import fields as F
 from .axis import AxisRecord
+
+DRAIN = 0.5  # s at most that a put's completion waits for its monitor events to go out
 
 _CONTROL = {"VAL": ("HLM", "LLM"), "RBV": ("HLM", "LLM"), "DVAL": ("DHLM", "DLLM"),
             "DRBV": ("DHLM", "DLLM"), "VELO": ("VMAX", "VBAS")}
@@ -49,6 +54,7 @@ class _Field:
 
     async def verify_value(self, value: Any) -> Any:
         await self.on_put(self.spec.name, value)
+        await self.owner.drain()
         return SkipWrite  # the record posted what the put made (or nothing)
 
     async def subscribe(self, queue: Any, sub_spec: Any, sub: Any) -> None:
@@ -101,7 +107,7 @@ class RecordChannels:
         self.pvdb[name] = self.by_field["VAL"]  # the record's own name is its VAL
         for suffix, spec in F.EXTRAS:
             self._add(f"{name}{suffix}", spec)
-        self._update_metadata_pending: List[str] = []
+        self.context: Any = None  # the caproto Context, set by tcp_bridge.epics.server
         record.post = self.post
 
     def _add(self, pv: str, spec: F.Field) -> None:
@@ -124,6 +130,20 @@ class RecordChannels:
         channel.on_put = self._put
         self.by_field[spec.name] = channel
         self.pvdb[pv] = channel
+
+    async def drain(self) -> None:
+        """Let the monitor events a put caused go out before its completion does, as a
+        client reads them right after (pyepics ``Motor.move`` reads LVIO then): caproto
+        sends monitors from each circuit's queue, in batches closed after
+        ``HIGH_LOAD_TIMEOUT`` (10 ms) without a new event; bounded by :data:`DRAIN`."""
+        if self.context is None:
+            return
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + DRAIN
+        while loop.time() < deadline and any(
+                not c.subscription_queue.empty() for c in list(self.context.circuits)):
+            await asyncio.sleep(0.002)
+        await asyncio.sleep(HIGH_LOAD_TIMEOUT + 0.002)
 
     def recount(self) -> None:
         """Subscriptions to any field of the record, from caproto's own bookkeeping

@@ -120,6 +120,8 @@ class EpicsServer:
                         for addr, _ in self.names]
         pvdb, self.channels = build([(r, n) for r, (_, n) in zip(self.records, self.names)])
         self.context = BridgeContext(pvdb, self.interfaces, allow, self.beacons)
+        for channels in self.channels:
+            channels.context = self.context
         self._task: Optional["asyncio.Task[None]"] = None
 
     @property
