@@ -2,7 +2,8 @@
 """One entry point that sets itself up: ``python3 dev.py start`` or ``python3 dev.py test``.
 
 It creates ``.venv`` beside this file on first use (and again whenever
-pyproject.toml changes), installs the project with its test, plot and ethercat extras, then runs
+pyproject.toml changes), installs the project with its test, plot, ethercat and epics extras
+(and the EPICS clients its tests drive), then runs
 the chosen job inside that environment. Only python3 is needed.
 
 ``start`` runs ``tcp-bridge serve`` with the arguments given: on the embedded
@@ -34,9 +35,11 @@ def ensure_env() -> None:
     if not PY.exists():
         print("dev.py: creating .venv", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    print("dev.py: installing the project and its test, plot and ethercat extras into .venv", flush=True)
+    print("dev.py: installing the project and its test, plot, ethercat and epics extras into .venv",
+          flush=True)
     pip = [str(PY), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
-    subprocess.run(pip + ["-e", f"{ROOT}[test,plot,ethercat]"], check=True)  # plot, ethercat: their tests
+    # plot, ethercat, epics (+ the CA clients pyepics, ophyd, ophyd-async): their tests
+    subprocess.run(pip + ["-e", f"{ROOT}[test,plot,ethercat,epics,epics-clients]"], check=True)
     STAMP.write_text(want)
 
 

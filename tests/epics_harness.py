@@ -16,6 +16,7 @@ Skips: :data:`NO_SERVER` (caproto missing: the [epics] extra) and :func:`no_clie
 """
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import json
 import os
@@ -29,7 +30,15 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parent.parent
-NO_SERVER: Optional[str] = None if importlib.util.find_spec("caproto") else (
+def _importable(module: str) -> bool:
+    try:
+        importlib.import_module(module)
+    except ImportError:
+        return False
+    return True
+
+
+NO_SERVER: Optional[str] = None if _importable("caproto") else (
     "caproto is not installed, so serve --epics cannot run: the EPICS tests need the "
     "[epics] extra (pip install -e '.[epics]'; python3 dev.py installs it)")
 
@@ -38,7 +47,7 @@ def no_client(module: str) -> Optional[str]:
     """Why a CA client library cannot be used here, or None."""
     if NO_SERVER:
         return NO_SERVER
-    if importlib.util.find_spec(module) is None:
+    if importlib.util.find_spec(module) is None:  # not imported here: libca loads on import
         return (f"{module} is not installed: the EPICS client tests need the epics-clients "
                 "extra (pip install -e '.[epics-clients]'; python3 dev.py installs it)")
     return None

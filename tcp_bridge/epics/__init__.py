@@ -16,7 +16,6 @@ line, how to install it when it is not there.
 """
 from __future__ import annotations
 
-import importlib.util
 from typing import Optional
 
 INSTALL_HINT = ("--epics needs caproto, the optional extra [epics]: "
@@ -25,4 +24,8 @@ INSTALL_HINT = ("--epics needs caproto, the optional extra [epics]: "
 
 def missing() -> Optional[str]:
     """None when caproto can be imported, else the one line that says how to get it."""
-    return None if importlib.util.find_spec("caproto") is not None else INSTALL_HINT
+    try:
+        import caproto  # noqa: F401
+    except ImportError:
+        return INSTALL_HINT
+    return None

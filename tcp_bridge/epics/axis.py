@@ -41,7 +41,8 @@ from typing import Any, Awaitable, Callable, Dict, List, Optional, Sequence, Tup
 
 from . import fields as F
 from .record import Frame, Sample, alarm, live_fields, too_small, violates
-from ..errors import BridgeError, BusUnavailable, InvalidCommand
+from ..bus.sdo import NodeSilent
+from ..errors import BridgeError, BusUnavailable, InvalidCommand, SilentLink
 from ..tasks import cancel_and_wait
 from ..wire import ReadRequest, Request, WriteRequest, decode_reply, format_value
 
@@ -50,11 +51,15 @@ log = logging.getLogger(__name__)
 MOVING_PERIOD = 0.2  # s between polls while the axis moves (or a motion put waits)
 IDLE_PERIOD = 0.5  # s between polls at rest, while someone subscribes
 SLOW_EVERY = 10  # every 10th poll also reads speeds, limits and errors
+OVERDUE = 0.4  # s: a read unanswered this long raises the COMM alarm (issue 33: "within a second")
 FAST = (10, 12, 14, 82, 83)
 SLOW = (5, 6, 26, 33, 34, 13, 11)
 FAST_TRANSFERS = 6  # R82 costs 2 when bit 10 alone says "reached" (tcp_bridge.plan.reads)
 SLOW_TRANSFERS = 11  # 05 06 26 33 34 13: one each; R11: 603Fh, 60FDh, (+3 on a limit error)
 MIP_MOVE, MIP_HOME, MIP_STOP, MIP_EXTERNAL = 0x0020, 0x0008, 0x0200, 0x8000
+
+# Nobody answered (a silent bus, link or node), as opposed to a drive that refused.
+SILENCE = (BusUnavailable, SilentLink, NodeSilent, asyncio.TimeoutError)
 
 Post = Callable[[Dict[str, Any]], Awaitable[None]]
 
@@ -195,14 +200,20 @@ class AxisRecord:
         failure: Optional[str] = None
         silent = False
         cmds = list(FAST + SLOW) if slow else list(FAST)
+        loop = asyncio.get_running_loop()
         for cmd in cmds:
+            # A read unanswered for OVERDUE seconds shows the alarm at once (an IOC's
+            # driver does the same when its controller stops answering); the bus's own
+            # verdict (tcp_bridge.bus.health) follows when its timeouts have run out.
+            timer = loop.call_later(OVERDUE, self._schedule_overdue, cmd)
             try:
                 got[cmd] = await self.ask(cmd)
             except (BridgeError, asyncio.TimeoutError) as exc:
-                failure, silent = reason(exc), isinstance(exc, (BusUnavailable,
-                                                                  asyncio.TimeoutError))
+                failure, silent = reason(exc), isinstance(exc, SILENCE)
                 if cmd in FAST:
                     break  # the bus fails fast: the rest would be refused too
+            finally:
+                timer.cancel()
             if cmd == 83 and not slow and (got.get(83) == "1" or _fault(got.get(10))):
                 cmds.append(11)  # which switch, or what fault
         self.last_poll = self.clock()
@@ -216,6 +227,15 @@ class AxisRecord:
         await self._limits_and_speeds(got)
         await self._publish(sample)
         return sample
+
+    def _schedule_overdue(self, cmd: int) -> None:
+        asyncio.ensure_future(self._overdue(cmd))
+
+    async def _overdue(self, cmd: int) -> None:
+        if self._closing:
+            return
+        await self._publish(Sample(failure=f"axis {self.addr}: R{cmd:02d} unanswered for "
+                                   f"{OVERDUE:g} s", silent=True))
 
     async def _limits_and_speeds(self, got: Dict[int, Optional[str]]) -> None:
         changes: Dict[str, Any] = {}

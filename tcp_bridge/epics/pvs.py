@@ -119,7 +119,6 @@ class RecordChannels:
             kwargs["enum_strings"] = spec.menu[:16]  # CA carries at most 16 (STAT: the first 16)
         elif spec.kind is F.Kind.CHARS:
             kwargs["max_length"] = F.MESSAGE_SIZE
-            kwargs["report_as_string"] = True
         elif spec.kind in (F.Kind.DOUBLE, F.Kind.FLOAT):
             kwargs["precision"] = int(self.record.values["PREC"])
             kwargs["units"] = _units(spec.name, str(self.record.values["EGU"]))
