@@ -95,7 +95,9 @@ def test_ophyd_epics_motor_limits_set_wait_and_home_forward(served: Served) -> N
         m.velocity.put({VELO}, wait=True)
         m.high_limit_travel.put(6.0, wait=True)
         m.low_limit_travel.put(-6.0, wait=True)
-        time.sleep(0.5)
+        deadline = time.monotonic() + 30  # the control limits arrive by monitor
+        while list(m.limits) != [-6.0, 6.0] and time.monotonic() < deadline:
+            time.sleep(0.05)
         limits = list(m.limits)
         t = time.monotonic()
         m.set(4.0).wait(timeout=60)
