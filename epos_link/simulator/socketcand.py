@@ -37,6 +37,19 @@ The rules:
   lost. python-can's client checks the ``< ok >`` with one ``recv()`` compared to
   the exact text, so a frame sent right behind it could arrive in the same read
   and fail the handshake (the reference server has the same race).
+* **A client's frames reach the bus, even when its connection ends in a reset**,
+  as on a CAN bus, where a frame sent is on the bus whatever its sender does
+  next. A client that closes its socket with frames still unread (python-can's
+  ``shutdown()`` does) makes its kernel answer with a TCP reset, and the
+  server's next write or read then fails with ``ECONNRESET``; asyncio would
+  forget the bytes that client sent before the reset (still in the kernel, or
+  read but not yet taken from the :class:`asyncio.StreamReader`).
+  :class:`_TakeAllProtocol` reads what the socket still holds when the
+  connection is lost and hands it to the reader, followed by an ordinary end
+  of stream, so every command the client sent before the reset is carried
+  out (Linux delivers the data queued before a reset before it reports the
+  reset: ``tcp_recvmsg`` copies the receive queue before it looks at
+  ``sk_err``). Bounded by :data:`DRAIN_LIMIT` bytes.
 * Close: the reader thread and the loop thread are joined with timeouts, the
   clients' connections are closed, the virtual bus connection is shut down.
 """
@@ -48,7 +61,7 @@ import os
 import socket
 import threading
 import time
-from typing import List, Optional, Set, Tuple
+from typing import Any, List, Optional, Set, Tuple
 
 import can
 
@@ -58,6 +71,7 @@ from .socketcand_wire import (HI, CommandReader, CommandTooLong, Frame, Session,
 log = logging.getLogger(__name__)
 OUTPUT_LIMIT = 1 << 20  # bytes waiting for one client: ~20000 frames, 2 s of a full 1 Mbit/s bus
 RAW_SETTLE = 0.1  # seconds at most between < ok > to < rawmode > and the first frame (see above)
+DRAIN_LIMIT = 1 << 20  # bytes read from a reset connection's socket (a kernel holds ~200 kB)
 DEFAULT_HOST = "127.0.0.1"
 BUS_NAME = "can0"
 
@@ -88,6 +102,49 @@ def _to_frame(msg: can.Message) -> Optional[Frame]:
                      error=msg.is_error_frame, dlc=msg.dlc if msg.is_remote_frame else -1)
     except SocketcandError:
         return None
+
+
+def _drain(fd: int, limit: int = DRAIN_LIMIT) -> bytes:
+    """What a lost connection's socket still holds, up to ``limit`` bytes (the fd is
+    non-blocking: asyncio's). Stops at the end of the data, the reset or any error."""
+    chunks: list[bytes] = []
+    taken = 0
+    while taken < limit:
+        try:
+            chunk = os.read(fd, min(65536, limit - taken))
+        except OSError:  # BlockingIOError: nothing more; ConnectionResetError: the reset
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+        taken += len(chunk)
+    return b"".join(chunks)
+
+
+class _TakeAllProtocol(asyncio.StreamReaderProtocol):
+    """asyncio's stream protocol, except that a connection lost with an error (a reset)
+    first delivers what its socket still holds, then an end of stream (module docstring).
+
+    asyncio closes the socket only after ``connection_lost`` returns
+    (``_SelectorTransport._call_connection_lost``), so it can still be read here."""
+
+    def __init__(self, reader: asyncio.StreamReader, connected: Any) -> None:
+        super().__init__(reader, connected)
+        self._reader = reader
+        self._fd = -1
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        sock = transport.get_extra_info("socket")
+        self._fd = sock.fileno() if sock is not None else -1
+        super().connection_made(transport)
+
+    def connection_lost(self, exc: Optional[Exception]) -> None:
+        if exc is not None and self._fd >= 0:
+            rest = _drain(self._fd)
+            if rest:
+                self._reader.feed_data(rest)
+            exc = None  # the commands before the reset are read first, then the end
+        super().connection_lost(exc)
 
 
 class _Client:
@@ -132,8 +189,7 @@ class SocketcandServer:
                                            name="socketcand-loop", daemon=True)
             loop_thread.start()
             self._threads.append(loop_thread)
-            self._server = asyncio.run_coroutine_threadsafe(
-                asyncio.start_server(self._serve, sock=self._sock), self._loop).result(10)
+            self._server = asyncio.run_coroutine_threadsafe(self._listen(), self._loop).result(10)
             reader = threading.Thread(target=self._read_bus, name="socketcand-bus", daemon=True)
             reader.start()
             self._threads.append(reader)
@@ -142,6 +198,14 @@ class SocketcandServer:
             raise
         log.info("CAN channel %s served over socketcand at %s:%d", self.channel, *self.address)
         return self
+
+    async def _listen(self) -> asyncio.AbstractServer:
+        """asyncio.start_server, with :class:`_TakeAllProtocol` for each connection."""
+        loop = asyncio.get_running_loop()
+
+        def protocol() -> _TakeAllProtocol:
+            return _TakeAllProtocol(asyncio.StreamReader(loop=loop), self._serve)
+        return await loop.create_server(protocol, sock=self._sock)
 
     @property
     def url(self) -> str:
@@ -192,8 +256,8 @@ class SocketcandServer:
         self._deliver(frame, timestamp, client)
 
     def _write(self, client: _Client, data: bytes, frame: bool = False) -> None:
-        if client.gone:
-            return
+        if client.gone or client.transport.is_closing():
+            return  # a client whose connection is lost may still have commands to run
         if frame and client.held is not None:
             client.held.append(data)
             client.held_bytes += len(data)
@@ -310,5 +374,5 @@ class SocketcandServer:
         self.close()
 
 
-__all__ = ["BUS_NAME", "DEFAULT_HOST", "OUTPUT_LIMIT", "RAW_SETTLE", "SocketcandServer",
+__all__ = ["BUS_NAME", "DEFAULT_HOST", "DRAIN_LIMIT", "OUTPUT_LIMIT", "RAW_SETTLE", "SocketcandServer",
            "listen_error", "parse_address"]
