@@ -326,6 +326,15 @@ def parser() -> argparse.ArgumentParser:
                                    "1 otherwise.")
     from .check import add_arguments as check_arguments
     check_arguments(c)
+    r = sub.add_parser("record", help="record an axis through a running bridge (PSI reads) "
+                       "to CSV and plots",
+                       description="Sample readable commands of one axis through a running "
+                                   "bridge, as any PSI client reads them (never a second SDO "
+                                   "client of the drive), with epos-link record's triggers, "
+                                   "CSV and plots. Example: tcp-bridge record 127.0.0.1:1913 2 "
+                                   "--trigger move --duration 2 --csv move.csv")
+    from .record import add_arguments as record_arguments
+    record_arguments(r)
     t = sub.add_parser("send", help="send requests to a gateway and print the replies")
     t.add_argument("address", metavar="HOST:PORT", type=address)
     t.add_argument("request", nargs="+",
@@ -350,6 +359,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser().parse_args(argv)
     if args.command == "send":
         return _send(args)
+    if args.command == "record":
+        from .record import run as run_record
+
+        return run_record(args)
     if args.command == "check":
         from .check import run as run_check
 

@@ -151,14 +151,17 @@ class Outcome:
     recorder: Recorder
     schedule: Schedule
     interrupted: bool = False
-    error: Optional[EposError] = None  # the link failed part-way: what came before is kept
+    error: Optional[Exception] = None  # the link failed part-way: what came before is kept
 
 
 def sample_loop(read_row: Callable[[], tuple], recorder: Recorder, schedule: Schedule,
                 clock: Callable[[], float] = time.monotonic,
                 sleep: Callable[[float], None] = time.sleep,
-                progress: Optional[Callable[[Recorder, float], None]] = None) -> Outcome:
-    """Sample until the recorder is done; Ctrl-C ends it with what was recorded."""
+                progress: Optional[Callable[[Recorder, float], None]] = None,
+                errors: tuple[type[Exception], ...] = (EposError,)) -> Outcome:
+    """Sample until the recorder is done; Ctrl-C ends it with what was recorded, and so
+    does one of ``errors`` (the link's: EposError here, the bridge's in
+    :mod:`tcp_bridge.record`), kept in the outcome."""
     outcome = Outcome(recorder, schedule)
     try:
         while recorder.phase is not Phase.DONE:
@@ -175,7 +178,7 @@ def sample_loop(read_row: Callable[[], tuple], recorder: Recorder, schedule: Sch
                 progress(recorder, end)
     except KeyboardInterrupt:
         outcome.interrupted = True
-    except EposError as exc:
+    except errors as exc:
         outcome.error = exc
     return outcome
 
@@ -223,7 +226,8 @@ class Progress:
 # --- the command ----------------------------------------------------------------------
 
 
-def _summary(outcome: Outcome, channels: list[Channel], written: list[str]) -> str:
+def summary(outcome: Outcome, channels: list[Channel], written: list[str]) -> str:
+    """The one summary line (shared with ``tcp-bridge record``)."""
     rec = outcome.recorder
     times = [s.time for s in rec.samples]
     gap = median_interval(times)
@@ -268,11 +272,12 @@ def run(args: argparse.Namespace) -> int:
             progress.end()
         title = f"node {args.node}: " + ", ".join(ch.name for ch in channels)
         written = write_outputs(args, channels, outcome.recorder.rows(), title)
-        print(_summary(outcome, channels, written.paths),
+        print(summary(outcome, channels, written.paths),
               file=sys.stderr if args.csv == "-" else sys.stdout)
         if written.failed:
             print(written.failure_line(), file=sys.stderr)
         if outcome.error is not None:
+            assert isinstance(outcome.error, EposError)
             code = report(PROG, outcome.error)  # after the files are written: what stopped it
             return 2 if written.failed else code
         if written.failed:
@@ -283,4 +288,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 __all__ = ["Outcome", "Progress", "add_arguments", "channels_of", "parse_trigger", "resolve",
-           "run", "sample_loop"]
+           "run", "sample_loop", "summary"]

@@ -87,11 +87,11 @@ class Written:
     paths: list[str] = field(default_factory=list)
     failed: list[tuple[str, str]] = field(default_factory=list)
 
-    def failure_line(self) -> str:
+    def failure_line(self, prog: str = PROG) -> str:
         """One line for standard error: what failed, and what was kept."""
         what = "; ".join(f"cannot write {path}: {reason}" for path, reason in self.failed)
         kept = f"wrote {', '.join(self.paths)}" if self.paths else "nothing was written"
-        return f"{PROG}: {what}; {kept}"
+        return f"{prog}: {what}; {kept}"
 
 
 def _reason(exc: BaseException) -> str:
