@@ -40,8 +40,8 @@ from typing import Callable, Optional
 import can
 
 STEP_TIMEOUT = 5.0  # seconds for the drive to show a step (it takes a few ms)
-QUIET = 0.05  # seconds without a frame: the bus is quiet, close
-DRAIN_MAX = 1.0  # seconds of reading at most before the close
+QUIET = 0.02  # seconds without a frame: the bus is quiet, close
+DRAIN_MAX = 0.2  # seconds of reading at most (a moving drive sends TPDOs all along)
 STATE_MASK = 0x6F  # statusword bits 0-3, 5, 6: the CiA 402 state (CiA 402-2 Table 30)
 READY_TO_SWITCH_ON, SWITCHED_ON, OPERATION_ENABLED = 0x21, 0x23, 0x27
 SET_POINT_ACKNOWLEDGE = 1 << 12
