@@ -6,6 +6,7 @@ they matter here:
 
 * ``GET /`` the page (:mod:`.page`); ``GET /api/axes`` the latest sample (JSON);
   ``GET /api/history`` the last minute of positions and velocities (JSON);
+  ``GET /api/history.csv`` the same as CSV, to download (:mod:`.history_csv`);
   ``GET /api/stream`` Server-Sent Events (WHATWG HTML, "Server-sent events"):
   one ``data:`` event per sample, the body of ``/api/axes``. ``HEAD`` is not served.
 * Any other method: 405 with ``Allow: GET`` (RFC 9110 15.5.6); any other path:
@@ -32,6 +33,9 @@ from typing import Any, Dict, Final, List, Optional, Sequence, Set, Tuple
 
 from ..access import LOOPBACK, Network, describe, is_allowed
 from ..tasks import cancel_and_wait
+from .history_csv import CONTENT_TYPE as CSV_TYPE
+from .history_csv import FILENAME as CSV_NAME
+from .history_csv import history_csv
 from .page import PAGE
 from .sampler import DEFAULT_PERIOD, Sampler
 
@@ -175,6 +179,10 @@ class StatusServer:
             await self._json(writer, self.sampler.latest or {"seq": 0, "axes": []})
         elif path == "/api/history":
             await self._json(writer, self.sampler.history_body())
+        elif path == "/api/history.csv":
+            text = history_csv(self.sampler.history_body()).encode("utf-8")
+            await self._simple(writer, 200, text, CSV_TYPE, extra=[
+                ("Content-Disposition", f'attachment; filename="{CSV_NAME}"')])
         elif path == "/api/stream":
             await self._stream(writer)
         else:

@@ -37,6 +37,7 @@ canvas{background:#fff;border:1px solid #ccc;margin-top:.6em;display:block}
 <th>last error</th></tr></thead><tbody id="rows"></tbody></table>
 <canvas id="pos" width="900" height="200"></canvas>
 <canvas id="vel" width="900" height="200"></canvas>
+<p><a id="history-csv" href="/api/history.csv" download>the last minute as CSV</a></p>
 <script>
 "use strict";
 const COLORS = ["#1f77b4","#d62728","#2ca02c","#ff7f0e","#9467bd","#8c564b","#e377c2","#17becf"];
