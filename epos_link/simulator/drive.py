@@ -100,6 +100,7 @@ from .faults import (
     FaultSpec,
 )
 from .homing import HomingStatus, Leg, VirtualSwitches
+from .data_recorder import DataRecorder
 from .kinematics import Kinematics
 from .motion import Profile, hold
 from .objects import Mode, install_object_rules
@@ -144,6 +145,8 @@ class Drive(StateMachine, Observation, SetPoints, Kinematics):
         self._in_event = False  # the run loop is raising a fault at an earlier instant
         self._blocked_at: float | None = None  # a blocked axis stands here (monitors.py)
         install_object_rules(self.store, self)
+        # The EPOS4's own data recorder (31E0h-31E9h): sampled in the drive's time, below.
+        self.recorder = DataRecorder(self.store, lambda: self._now)
         self._power_up(start if start is not None else (clock() if clock is not None else 0.0))
         if clock is not None:
             self.store.before_access = self.sync
@@ -163,6 +166,13 @@ class Drive(StateMachine, Observation, SetPoints, Kinematics):
             now = self.clock()
         if now < self._now:
             return
+        # The data recorder samples at its own instants: the model stands at each in turn
+        # (epos_link.simulator.data_recorder, "Time").
+        for t in self.recorder.sample_times(now):
+            if t > self._now:
+                self._run_until(t)
+                self._now = t
+            self.recorder.take(t)
         self._run_until(now)
         self._now = now
 

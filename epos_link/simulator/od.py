@@ -117,6 +117,10 @@ def load_object_dictionary(node_id: int = 1, path: Union[str, Path] = EDS_PATH) 
     od.node_id = node_id  # import_eds sets it only from a [DeviceComissioning] section
     add_value_descriptions(od)
     _own_serial_number(od, node_id)
+    from .data_recorder import add_recorder_objects  # the XDD's 31E0h-31E9h, not in the EDS
+
+    if path == EDS_PATH:
+        add_recorder_objects(od)
     return od
 
 
