@@ -254,6 +254,31 @@ def summary(outcome: Outcome, channels: list[Channel], written: list[str]) -> st
     return line + (f"; wrote {', '.join(written)}" if written else "")
 
 
+# SDO aborts that a node's answers going to another client cause (CiA 301 Table 22): the
+# gateway waits for an answer another client took (timed out), or gets one meant for
+# another client's transfer (command specifier, toggle bit, sequence number).
+SDO_CHANNEL_ABORTS = {0x05040000: "SDO protocol timed out", 0x05040001: "command specifier",
+                      0x05030000: "toggle bit not alternated", 0x05040003: "sequence number"}
+
+
+def channel_taken(error: EposError, node: int, samples: int) -> Optional[str]:
+    """Why reads of a node that answered before now fail with an SDO protocol abort, or
+    None. CiA 301 7.2.4: one client per SDO channel; the EPOS4's gateway is a client of
+    the node's default channel (600h/580h + node id), so any other client of that node
+    on the same CAN bus (a bridge, a canopen script, another master) takes its answers
+    (issue 34: record stopped after 10 samples with a bare "SDO protocol timed out")."""
+    code = getattr(error, "code", None)
+    if node == 0 or samples == 0 or code not in SDO_CHANNEL_ABORTS:
+        return None
+    return (f"node {node} answered {samples} samples, then its SDO transfer failed "
+            f"(0x{code:08X}): another SDO client of node {node} on that CAN bus, such as a "
+            f"tcp-bridge or a canopen script, probably uses its default SDO channel "
+            f"(0x{0x600 + node:03X}/0x{0x580 + node:03X}, CiA 301 7.2.4: one client per "
+            "channel) and takes the answers. Record through that program instead "
+            "(tcp-bridge record HOST:PORT AXIS for a bridge's axis), or stop its SDO traffic "
+            "to the node (docs/epos-link.md, \"Recording a move\")")
+
+
 def run(args: argparse.Namespace) -> int:
     refused = check_outputs(args)  # before anything is sent (record_output's docstring)
     if refused is not None:
@@ -287,6 +312,9 @@ def run(args: argparse.Namespace) -> int:
         if outcome.error is not None:
             assert isinstance(outcome.error, EposError)
             code = report(PROG, outcome.error)  # after the files are written: what stopped it
+            hint = channel_taken(outcome.error, args.node, len(outcome.recorder.samples))
+            if hint is not None:
+                print(f"{PROG}: {hint}", file=sys.stderr)
             return 2 if written.failed else code
         if written.failed:
             return 2
@@ -313,5 +341,5 @@ def _on_drive(args: argparse.Namespace, targets: list[Target], trigger: Trigger,
     return 130 if recording.interrupted else 0
 
 
-__all__ = ["Outcome", "Progress", "add_arguments", "channels_of", "parse_trigger", "resolve",
-           "run", "sample_loop", "summary"]
+__all__ = ["Outcome", "Progress", "SDO_CHANNEL_ABORTS", "add_arguments", "channel_taken",
+           "channels_of", "parse_trigger", "resolve", "run", "sample_loop", "summary"]
