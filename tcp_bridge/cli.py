@@ -59,8 +59,8 @@ if TYPE_CHECKING:
 PROG = "tcp-bridge"
 # argparse prints descriptions as they are: plain text, no reST markup.
 DESCRIPTION = ("Serve the PSI \"TCP-IP to CANopen gateway\" protocol (rev 2.3) to EPICS and "
-               "NICOS, check an axis table against the drives on its buses, or send requests "
-               "to a gateway.")
+               "NICOS, check an axis table against the drives on its buses, record an axis "
+               "through a running bridge, or send requests to a gateway.")
 
 
 def _fail(message: str) -> int:
