@@ -67,22 +67,26 @@ def test_record_while_another_sdo_client_polls_the_node(tmp_path: Path) -> None:
                 except Exception:  # its own transfers suffer too; it goes on
                     pass
 
+        record = subprocess.Popen([*cli, "record", url.group(0), "--node", "2",
+                                   "position_actual_value", "statusword", "--duration", "30",
+                                   "--csv", str(tmp_path / "x.csv")],
+                                  cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True)
+        assert record.stderr is not None
+        # The node has answered (the first sample, "now"): then the other program starts.
+        assert record.stderr.readline().startswith("triggered; recording")
         poller = threading.Thread(target=poll, daemon=True)
         poller.start()
-        done = subprocess.run([*cli, "record", url.group(0), "--node", "2",
-                               "position_actual_value", "statusword", "--duration", "30",
-                               "--csv", str(tmp_path / "x.csv")],
-                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        out, err = record.communicate(timeout=120)
     finally:
         stop.set()
         network.disconnect()
         sim.terminate()
         sim.wait(timeout=30)
-    assert done.returncode == 1, done.stderr
-    assert "stopped by an error" in done.stdout
-    lines = done.stderr.strip().splitlines()
-    assert re.match(r"epos-link record: device error 0x0504000[01] |"
-                    r"epos-link record: device error 0x05030000 ", lines[-2]), lines
+    assert record.returncode == 1, err
+    assert "stopped by an error" in out
+    lines = err.strip().splitlines()
+    assert re.match(r"epos-link record: device error 0x0(504000[013]|5030000) ", lines[-2]), lines
     assert re.match(r"epos-link record: node 2 answered \d+ samples, then its SDO transfer "
                     r"failed .*another SDO client of node 2.*0x602/0x582.*"
                     r"tcp-bridge record HOST:PORT AXIS", lines[-1]), lines[-1]
