@@ -24,7 +24,8 @@ TARGET = 20000  # the block's examples/pp_move.py ... 2 20000
 
 def walkthrough() -> doc_blocks.Block:
     found = [b for b in doc_blocks.parse(doc_blocks.ROOT / "docs" / "epos-link.md")
-             if any("examples/pp_move.py" in c.text for c in b.commands)]
+             if any("examples/pp_move.py" in c.text for c in b.commands)
+             and not any("--on-drive" in c.text for c in b.commands)]
     assert len(found) == 1, "docs/epos-link.md has one recording walkthrough with pp_move.py"
     return found[0]
 
