@@ -128,14 +128,15 @@ def test_a_bridge_move_recorded_matches_r12_reads_taken_during_it(bridge: SimBri
     curve = [(s.time, float(s.values[0])) for s in samples]
     times = [t for t, _ in curve]
     gaps = [b - a for a, b in zip(times, times[1:])]
-    slack = max(gaps)  # a sample's instant is known to within its own reads
+    slack = max(gaps) / 2  # a row is stamped at the middle of its reads, which fill the gap
     during = [r for r in reads if curve[0][0] <= r[0] and r[1] <= curve[-1][0]]
     moving = [r for r in during if 0.0 < r[2] < target]
     assert len(moving) >= 5, f"too few R12 reads during the move: {len(moving)}"
     for sent, answered, value in during:
         low = _interpolate(curve, sent - slack)
         high = _interpolate(curve, answered + slack)
-        assert low - 1e-9 <= value <= high + 1e-9, (sent, answered, value, low, high)
+        # 0.002: two increments, the chord of the accelerating curve between two samples
+        assert low - 0.002 <= value <= high + 0.002, (sent, answered, value, low, high)
     assert curve[-1][1] == target
     assert any(0.0 < p < target for _, p in curve)
 
