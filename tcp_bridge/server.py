@@ -65,8 +65,10 @@ from typing import List, Optional, Sequence, Set, Tuple
 from .access import LOOPBACK, Address, Network, client_address, describe, is_allowed
 from .engine import Engine
 from .errors import BridgeError
+from .reasons import ReasonLog
 from .tasks import cancel_and_wait
-from .wire import DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item
+from .wire import (DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item,
+                   status_for)
 
 log = logging.getLogger(__name__)
 debug_log = logging.getLogger("tcp_bridge.debug")
@@ -135,6 +137,7 @@ class BridgeServer:
         self._connections: Set[_Connection] = set()
         self._closing = False
         self._closed = asyncio.Event()
+        self.reasons = ReasonLog()  # each CAN/NAK's reason at -v (tcp_bridge.reasons)
 
     @property
     def addresses(self) -> List[Tuple[str, int]]:
@@ -319,8 +322,10 @@ class BridgeServer:
         except Exception as exc:
             if not isinstance(exc, (BridgeError, asyncio.TimeoutError)):
                 log.exception("unexpected error for %r; answered NAK", item)
-            elif self.engine.debug:
-                debug_log.info("error: %s", exc)
+            else:
+                self.reasons.refused(item, request, exc, status_for(exc))
+                if self.engine.debug:
+                    debug_log.info("error: %s", exc)
             reply = format_error_reply(exc, request)
         if self.engine.debug:
             debug_log.info("request %r -> reply %r", item, reply.rstrip(b"\0"))
