@@ -77,10 +77,9 @@ class ReasonLog:
         """Log why ``item`` was answered ``status``; returns the line, or None if held back."""
         if not self.logger.isEnabledFor(logging.INFO):
             return None
-        if request is not None:
-            axis, letter, cmd = request.axis, request.kind, request.cmd
-        else:
-            axis, letter, cmd = (getattr(exc, name, None) for name in ("axis", "kind", "cmd"))
+        axis: Optional[int] = getattr(request or exc, "axis", None)
+        letter: Optional[str] = getattr(request or exc, "kind", None)
+        cmd: Optional[int] = getattr(request or exc, "cmd", None)
         why = one_line(str(exc) or type(exc).__name__)
         # Numbers vary within one kind of refusal ("silent for 10.1 s", "for 10.6 s").
         kind: Kind = (axis, letter, cmd, status, type(exc).__name__, _DIGITS.sub("#", why))
