@@ -1,24 +1,42 @@
 """Plots of a recording: PNG or SVG through matplotlib, or one self-contained HTML file.
 
-The layout is decided once, here, for both (:func:`panels`): one axis per
-physical quantity (the objects that share a unit share an axis; an object
-without a unit has its own), all over the same time axis, and the statusword
-as a step trace of its CiA 402 state (CiA 402-2 6.4.1.4), labelled with the
-state names. Values that are not numbers (strings, bytes) are not drawn.
+What an engineer reading a recording expects (issue 34 item 3; the habits of EPOS
+Studio's Data Recorder and PlotJuggler), decided once here for both outputs
+(:func:`panels`):
+
+* **One axis per physical quantity**: the objects that share a unit share an
+  axis; an object without a unit has its own; all over the same time axis.
+* **The state as a thin band**: the statusword becomes its CiA 402 state
+  (CiA 402-2 6.4.1.4), drawn as a strip of coloured spans named by state, a
+  fraction of a quantity's height, not a panel of its own.
+* **A mark at the trigger**: a dashed vertical line at time 0 labelled
+  "trigger", on every axis; none when the recording was never triggered
+  (interrupted while waiting: time 0 is then the last sample, not a trigger).
+* **Gaps, not straight lines, where samples are missing**: with a sampling
+  period, consecutive samples more than 1.5 periods apart have at least one
+  missed slot between them (the sampler skips slots it cannot take, it never
+  catches up: :class:`epos_link.tools.recording.Schedule`); the usual step is the
+  median interval instead when the link cannot keep the period (:func:`gap_limit`).
+  Without a period (as fast as the link allows), a pause of more than
+  :data:`STALL_FACTOR` median intervals is a stall. A gap is a break in every
+  trace (a NaN point in the middle of the gap) and a light grey span, so no line
+  is drawn across time when nothing was measured; a sample alone between two
+  gaps is drawn as a dot.
+* **Legends off the data**: matplotlib puts them to the right of each axis,
+  outside it; the HTML page under each chart.
+* HTML only: **a cursor with the values at its time** (all charts follow it),
+  zoom by dragging across a chart (all charts follow), double-click to show all.
+
+Values that are not numbers (strings, bytes) are not drawn.
 
 * PNG/SVG: matplotlib, an optional dependency (``pip install 'epos-link[plot]'``);
   without it :class:`PlotUnavailable` says so. Each line carries its object's
   name as its gid, so an SVG names its traces (``<g id="...">``).
-* HTML: no script or style from the network. Each axis is an inline SVG whose
-  traces are polylines in data coordinates inside a nested ``<svg viewBox>``;
-  a few lines of inline JavaScript zoom the time axis of all of them at once
-  (drag across an axis; double-click to show everything again) by changing the
-  viewBox, and redraw the time ticks.
+* HTML: :mod:`epos_link.tools.plot_html`, uPlot (vendored in
+  :mod:`epos_link.vendor`) and the data inlined: no script or style from the network.
 """
 from __future__ import annotations
 
-import html
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,11 +44,23 @@ from typing import Any, Optional, Sequence
 
 from ..cia402 import State, state_text
 from ..errors import LocalProtocolError
-from .recording import Channel, Value, state_of
+from .recording import Channel, Value, median_interval, state_of
 
 FORMATS = (".png", ".svg", ".html", ".htm")
 STATE_AXIS = "CiA 402 state"
 NO_STATE = -1  # a statusword that codes no state
+SLOT_FACTOR = 1.5  # a step of more than 1.5 periods skipped at least one slot
+STALL_FACTOR = 3.0  # without a period: a pause of 3 median intervals is a gap
+GAP = math.nan
+
+# One colour per CiA 402 state (fault red, operation enabled green, the rest muted).
+STATE_COLOURS = {
+    NO_STATE: "#bbbbbb", int(State.NOT_READY_TO_SWITCH_ON): "#d9d9d9",
+    int(State.SWITCH_ON_DISABLED): "#c6dbef", int(State.READY_TO_SWITCH_ON): "#9ecae1",
+    int(State.SWITCHED_ON): "#6baed6", int(State.OPERATION_ENABLED): "#74c476",
+    int(State.QUICK_STOP_ACTIVE): "#fdae6b", int(State.FAULT_REACTION_ACTIVE): "#fb6a4a",
+    int(State.FAULT): "#cb181d",
+}
 
 
 class PlotUnavailable(LocalProtocolError):
@@ -41,7 +71,7 @@ class PlotUnavailable(LocalProtocolError):
 class Trace:
     label: str
     xs: tuple[float, ...]
-    ys: tuple[float, ...]
+    ys: tuple[float, ...]  # NaN: no value (a gap, see the module docstring)
     step: bool = False
 
 
@@ -49,7 +79,21 @@ class Trace:
 class Panel:
     ylabel: str
     traces: tuple[Trace, ...]
-    ticks: Optional[tuple[tuple[float, str], ...]] = None  # fixed y ticks (the state axis)
+    ticks: Optional[tuple[tuple[float, str], ...]] = None  # state codes and their names
+    band: bool = False  # the CiA 402 state strip
+
+    @property
+    def unit(self) -> str:
+        return self.ylabel.rsplit("[", 1)[1].rstrip("]") if self.ylabel.endswith("]") else ""
+
+
+@dataclass(frozen=True)
+class Span:
+    """A stretch of one state in the band: [start, end) and its state code."""
+
+    start: float
+    end: float
+    state: int
 
 
 def _number(value: Value) -> Optional[float]:
@@ -60,9 +104,47 @@ def _number(value: Value) -> Optional[float]:
     return None
 
 
-def panels(channels: Sequence[Channel], rows: Sequence[tuple[float, Sequence[Value]]]) -> list[Panel]:
-    """The axes of a plot, in the order their objects were named."""
-    xs = tuple(t for t, _ in rows)
+def gap_limit(times: Sequence[float], period: float = 0.0) -> Optional[float]:
+    """The longest step between two samples that is not a gap (None: no gaps).
+
+    With a period: 1.5 times the usual step, which is the period, or the median
+    interval when the link cannot keep the period (a link that takes every second
+    slot samples every 2 periods; only what it skipped beyond that is a gap, or a
+    recording at a steady 2 periods would be nothing but gaps)."""
+    typical = median_interval(times)
+    if period > 0:
+        return SLOT_FACTOR * max(period, typical or 0.0)
+    return STALL_FACTOR * typical if typical else None
+
+
+def gaps(times: Sequence[float], period: float = 0.0) -> list[tuple[float, float]]:
+    """(last sample before, first sample after) of each gap."""
+    limit = gap_limit(times, period)
+    if limit is None:
+        return []
+    return [(a, b) for a, b in zip(times, times[1:]) if b - a > limit]
+
+
+def panels(channels: Sequence[Channel], rows: Sequence[tuple[float, Sequence[Value]]], *,
+           period: float = 0.0) -> list[Panel]:
+    """The axes of a plot, in the order their objects were named; the state band last."""
+    times = [t for t, _ in rows]
+    holes = {a for a, _ in gaps(times, period)}
+    # Each gap gets one point in its middle with no value: a break in every trace.
+    xs: list[float] = []
+    for k, t in enumerate(times):
+        xs.append(t)
+        if t in holes and k + 1 < len(times):
+            xs.append((t + times[k + 1]) / 2)
+
+    def spread(values: Sequence[float]) -> tuple[float, ...]:
+        out: list[float] = []
+        for k, (t, v) in enumerate(zip(times, values)):
+            out.append(v)
+            if t in holes and k + 1 < len(times):
+                out.append(GAP)
+        return tuple(out)
+
     order: list[str] = []
     groups: dict[str, list[Trace]] = {}
     state_trace: Optional[Trace] = None
@@ -70,10 +152,9 @@ def panels(channels: Sequence[Channel], rows: Sequence[tuple[float, Sequence[Val
     for i, ch in enumerate(channels):
         if ch.is_statusword:
             states = [state_of(v[i]) for _, v in rows]
-            ys = tuple(float(NO_STATE if s is None else int(s)) for s in states)
-            seen_states.update(int(y) for y in ys)
-            state_trace = Trace(f"{ch.name} state", xs, ys, step=True)
-            order.append(STATE_AXIS)
+            codes = [float(NO_STATE if s is None else int(s)) for s in states]
+            seen_states.update(int(c) for c in codes)
+            state_trace = Trace(f"{ch.name} state", tuple(xs), spread(codes), step=True)
             continue
         numbers = [_number(v[i]) for _, v in rows]
         if not rows or any(n is None for n in numbers):
@@ -82,157 +163,140 @@ def panels(channels: Sequence[Channel], rows: Sequence[tuple[float, Sequence[Val
         if key not in groups:
             groups[key] = []
             order.append(key)
-        groups[key].append(Trace(ch.name, xs, tuple(n for n in numbers if n is not None)))
+        groups[key].append(Trace(ch.name, tuple(xs), spread([n for n in numbers if n is not None])))
     out = []
     for key in order:
-        if key == STATE_AXIS and state_trace is not None:
-            ticks = [(float(s), state_text(State(s))) for s in sorted(int(x) for x in State)]
-            if NO_STATE in seen_states:
-                ticks.insert(0, (float(NO_STATE), state_text(None)))
-            out.append(Panel(STATE_AXIS, (state_trace,), tuple(ticks)))
-        elif key in groups:
-            traces = tuple(groups[key])
-            one = len(traces) == 1 and key.startswith("[")  # "position actual value [inc]"
-            out.append(Panel(f"{traces[0].label} {key}" if one else key, traces))
+        traces = tuple(groups[key])
+        one = len(traces) == 1 and key.startswith("[")  # "position actual value [inc]"
+        out.append(Panel(f"{traces[0].label} {key}" if one else key, traces))
+    if state_trace is not None:
+        ticks = tuple((float(s), state_text(None if s == NO_STATE else State(s)))
+                      for s in sorted(seen_states))
+        out.append(Panel(STATE_AXIS, (state_trace,), ticks, band=True))
     return out
 
 
-def write_plot(path: str, found: Sequence[Panel], title: str) -> None:
+def isolated(trace: Trace) -> list[int]:
+    """Indices of the samples with no neighbour to draw a line to (NaN or none)."""
+    ys, last = trace.ys, len(trace.ys) - 1
+    return [k for k, y in enumerate(ys) if not math.isnan(y)
+            and (k == 0 or math.isnan(ys[k - 1])) and (k == last or math.isnan(ys[k + 1]))
+            and last > 0]
+
+
+def spans(trace: Trace) -> list[Span]:
+    """The band's stretches of one state: each sample's state lasts until the next
+    sample (a step, as the statusword was read); a gap ends a stretch at the sample
+    before it."""
+    out: list[Span] = []
+    for k in range(len(trace.xs) - 1):
+        y = trace.ys[k]
+        if math.isnan(y):
+            continue
+        start, code = trace.xs[k], int(y)
+        # Before a gap nothing is known after the sample itself: lines stop there too.
+        end = start if math.isnan(trace.ys[k + 1]) else trace.xs[k + 1]
+        if out and out[-1].state == code and out[-1].end == start:
+            out[-1] = Span(out[-1].start, end, code)
+        else:
+            out.append(Span(start, end, code))
+    return out
+
+
+def gap_spans(found: Sequence[Panel]) -> list[tuple[float, float]]:
+    """The (start, end) of each gap, from the traces (NaN points and their neighbours)."""
+    for panel in found:
+        for trace in panel.traces:
+            return [(trace.xs[k - 1], trace.xs[k + 1]) for k in range(1, len(trace.ys) - 1)
+                    if math.isnan(trace.ys[k])]
+    return []
+
+
+def write_plot(path: str, found: Sequence[Panel], title: str, *,
+               trigger: Optional[float] = 0.0) -> None:
+    """``trigger``: where the trigger mark goes (None: the recording was not triggered)."""
     suffix = Path(path).suffix.lower()
     if suffix in (".html", ".htm"):
-        Path(path).write_text(html_page(found, title), encoding="utf-8")
+        from .plot_html import html_page
+
+        Path(path).write_text(html_page(found, title, trigger=trigger), encoding="utf-8")
     elif suffix in (".png", ".svg"):
-        figure(found, title).savefig(path, dpi=80)
+        figure(found, title, trigger=trigger).savefig(path, dpi=80)
     else:
         raise PlotUnavailable(f"{path}: a plot is .png, .svg or .html")
 
 
-def figure(found: Sequence[Panel], title: str) -> Any:
+# --- matplotlib ------------------------------------------------------------------------
+
+
+def figure(found: Sequence[Panel], title: str, *, trigger: Optional[float] = 0.0) -> Any:
     """A matplotlib Figure (no pyplot, so no global state and no display needed)."""
     try:
         from matplotlib.figure import Figure
+        from matplotlib.patches import Patch
     except ImportError:
         raise PlotUnavailable("PNG and SVG plots need matplotlib: pip install 'epos-link[plot]' "
                               "(or pip install matplotlib); an .html plot needs nothing") from None
-    fig = Figure(figsize=(8.0, 1.0 + 2.0 * max(len(found), 1)), layout="constrained")
-    axes = fig.subplots(max(len(found), 1), 1, sharex=True, squeeze=False)[:, 0]
-    for ax, panel in zip(axes, found):
-        for trace in panel.traces:
-            if trace.step:
-                (line,) = ax.step(trace.xs, trace.ys, where="post", label=trace.label)
-            else:
+    shown = list(found) or [Panel("", ())]
+    ratios = [0.35 if p.band else 1.0 for p in shown]
+    fig = Figure(figsize=(10.0, 0.8 + sum(2.2 * r for r in ratios)), layout="constrained")
+    axes = fig.subplots(len(shown), 1, sharex=True, squeeze=False,
+                        gridspec_kw={"height_ratios": ratios})[:, 0]
+    holes = gap_spans(shown)
+    for ax, panel in zip(axes, shown):
+        if panel.band:
+            _band(ax, panel, Patch)
+        else:
+            for trace in panel.traces:
                 (line,) = ax.plot(trace.xs, trace.ys, label=trace.label, linewidth=1.2)
-            line.set_gid(trace.label)
-        ax.set_ylabel(panel.ylabel)
-        if panel.ticks:
-            ax.set_yticks([v for v, _ in panel.ticks], [t for _, t in panel.ticks], fontsize=7)
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
-    axes[-1].set_xlabel("time from trigger [s]")
-    fig.suptitle(title, fontsize=10)
+                line.set_gid(trace.label)
+                alone = isolated(trace)
+                if alone:  # no line reaches a sample alone between two gaps: a dot
+                    ax.plot([trace.xs[k] for k in alone], [trace.ys[k] for k in alone],
+                            linestyle="", marker="o", markersize=2.5, color=line.get_color(),
+                            gid=f"{trace.label} (alone)")
+            ax.set_ylabel(panel.ylabel, fontsize=9)
+            ax.grid(True, alpha=0.3)
+            # Off the data: to the right, outside the axes.
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0,
+                      fontsize=8, frameon=False)
+        for k, (a, b) in enumerate(holes):
+            ax.axvspan(a, b, color="#999999", alpha=0.15, linewidth=0,
+                       gid="gap" if k == 0 else None)
+        if trigger is not None:
+            ax.axvline(trigger, color="#333333", linestyle="--", linewidth=0.9, gid="trigger")
+    if trigger is not None:
+        axes[0].annotate("trigger", xy=(trigger, 1.0), xycoords=("data", "axes fraction"),
+                         xytext=(3, -10), textcoords="offset points", fontsize=8, color="#333333")
+    axes[-1].set_xlabel("time from trigger [s]" if trigger is not None else
+                        "time [s] (not triggered: 0 is the last sample)")
+    missed = f"; {len(holes)} gap{'s' if len(holes) != 1 else ''} (missed samples, grey)" \
+        if holes else ""
+    fig.suptitle(title + missed, fontsize=10)
     return fig
 
 
-# --- HTML ----------------------------------------------------------------------------
-
-WIDTH, HEIGHT, LEFT, RIGHT, TOP, BOTTOM = 900, 220, 150, 20, 10, 30
-COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b")
-
-
-def nice_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
-    """Round tick values between lo and hi (1, 2, 5 times a power of ten apart)."""
-    if not hi > lo:
-        return [lo]
-    raw = (hi - lo) / count
-    step = 10 ** math.floor(math.log10(raw))
-    for m in (1, 2, 5, 10):
-        if m * step >= raw:
-            step *= m
-            break
-    first = math.ceil(lo / step) * step
-    return [round(first + k * step, 12) for k in range(int((hi - first) / step + 1e-9) + 1)]
-
-
-def _points(trace: Trace) -> str:
-    pts: list[tuple[float, float]] = []
-    for k, (x, y) in enumerate(zip(trace.xs, trace.ys)):
-        if trace.step and k:
-            pts.append((x, trace.ys[k - 1]))
-        pts.append((x, y))
-    return " ".join(f"{x:.6g},{-y:.6g}" for x, y in pts)  # SVG's y grows downwards
+def _band(ax: Any, panel: Panel, patch: Any) -> None:
+    trace = panel.traces[0]
+    names = dict(panel.ticks or ())
+    found = spans(trace)
+    lo, hi = (trace.xs[0], trace.xs[-1]) if trace.xs else (0.0, 1.0)
+    width = (hi - lo) or 1.0
+    for span in found:
+        ax.broken_barh([(span.start, span.end - span.start)], (0, 1),
+                       facecolors=STATE_COLOURS.get(span.state, "#bbbbbb"), gid=trace.label)
+        if (span.end - span.start) / width > 0.12:  # a name only where it fits
+            ax.text((span.start + span.end) / 2, 0.5, names.get(float(span.state), ""),
+                    ha="center", va="center", fontsize=7, clip_on=True)
+    ax.set_ylim(0, 1)
+    ax.set_yticks([])
+    ax.set_ylabel("state", fontsize=9, rotation=0, ha="right", va="center")
+    used = sorted({s.state for s in found})
+    ax.legend(handles=[patch(color=STATE_COLOURS.get(s, "#bbbbbb"), label=names.get(float(s), ""))
+                       for s in used],
+              loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=7,
+              frameon=False)
 
 
-def _panel_svg(panel: Panel, x0: float, x1: float) -> str:
-    ys = [y for t in panel.traces for y in t.ys]
-    lo, hi = (min(ys), max(ys)) if ys else (0.0, 1.0)
-    if panel.ticks:
-        lo, hi = min(lo, panel.ticks[0][0]), max(hi, panel.ticks[-1][0])
-    if hi == lo:
-        lo, hi = lo - 1, hi + 1
-    pad = (hi - lo) * 0.05
-    lo, hi = lo - pad, hi + pad
-    pw, ph = WIDTH - LEFT - RIGHT, HEIGHT - TOP - BOTTOM
-    ticks = panel.ticks or tuple((v, f"{v:g}") for v in nice_ticks(lo, hi))
-    parts = [f'<svg class="panel" width="{WIDTH}" height="{HEIGHT}" data-ylabel="{html.escape(panel.ylabel)}">',
-             f'<rect x="{LEFT}" y="{TOP}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>']
-    for v, text in ticks:
-        y = TOP + ph * (hi - v) / (hi - lo)
-        parts.append(f'<line x1="{LEFT - 4}" x2="{LEFT + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#ddd"/>'
-                     f'<text x="{LEFT - 6}" y="{y + 4:.1f}" text-anchor="end">{html.escape(text)}</text>')
-    parts.append(f'<text x="12" y="{TOP + ph / 2:.0f}" transform="rotate(-90 12 {TOP + ph / 2:.0f})" '
-                 f'text-anchor="middle">{html.escape(panel.ylabel)}</text>')
-    parts.append(f'<g class="xticks" transform="translate(0 {TOP + ph})"></g>')
-    parts.append(f'<svg class="plot" x="{LEFT}" y="{TOP}" width="{pw}" height="{ph}" '
-                 f'viewBox="{x0:.6g} {-hi:.6g} {x1 - x0:.6g} {hi - lo:.6g}" preserveAspectRatio="none">')
-    for k, trace in enumerate(panel.traces):
-        colour = COLOURS[k % len(COLOURS)]
-        parts.append(f'<polyline data-label="{html.escape(trace.label)}" fill="none" stroke="{colour}" '
-                     f'stroke-width="1.5" vector-effect="non-scaling-stroke" points="{_points(trace)}"/>')
-    parts.append("</svg>")
-    for k, trace in enumerate(panel.traces):
-        parts.append(f'<text x="{LEFT + 8}" y="{TOP + 16 + 14 * k}" fill="{COLOURS[k % len(COLOURS)]}">'
-                     f'{html.escape(trace.label)}</text>')
-    parts.append("</svg>")
-    return "".join(parts)
-
-
-# Drag across any axis to zoom the time axis of all; double-click to reset.
-_SCRIPT = """
-const L=%d,PW=%d,FULL=%s;let view=FULL.slice(),drag=null;
-function ticks(lo,hi){const raw=(hi-lo)/8,p=Math.pow(10,Math.floor(Math.log10(raw)));
- let s=p;for(const m of [1,2,5,10]){if(m*p>=raw){s=m*p;break;}}const out=[];
- for(let v=Math.ceil(lo/s)*s;v<=hi+1e-12;v+=s)out.push(+v.toPrecision(12));return out;}
-function show(){for(const svg of document.querySelectorAll('svg.panel')){
- const plot=svg.querySelector('svg.plot'),vb=plot.getAttribute('viewBox').split(' ');
- plot.setAttribute('viewBox',[view[0],vb[1],view[1]-view[0],vb[3]].join(' '));
- const g=svg.querySelector('g.xticks');g.innerHTML='';
- for(const v of ticks(view[0],view[1])){const x=L+PW*(v-view[0])/(view[1]-view[0]);
-  g.innerHTML+=`<line x1="${x}" x2="${x}" y1="0" y2="5" stroke="#888"/>`+
-  `<text x="${x}" y="18" text-anchor="middle">${v}</text>`;}}}
-function at(e,svg){const r=svg.getBoundingClientRect();
- return view[0]+(view[1]-view[0])*Math.min(Math.max((e.clientX-r.left-L)/PW,0),1);}
-for(const svg of document.querySelectorAll('svg.panel')){
- svg.addEventListener('mousedown',e=>{drag=at(e,svg);e.preventDefault();});
- svg.addEventListener('mouseup',e=>{if(drag===null)return;const t=at(e,svg);
-  if(Math.abs(t-drag)>1e-9)view=[Math.min(t,drag),Math.max(t,drag)];drag=null;show();});
- svg.addEventListener('dblclick',()=>{view=FULL.slice();show();});}
-show();
-"""
-
-
-def html_page(found: Sequence[Panel], title: str) -> str:
-    xs = [x for p in found for t in p.traces for x in t.xs]
-    x0, x1 = (min(xs), max(xs)) if xs else (0.0, 1.0)
-    if x1 == x0:
-        x1 = x0 + 1.0
-    body = "\n".join(_panel_svg(p, x0, x1) for p in found)
-    script = _SCRIPT % (LEFT, WIDTH - LEFT - RIGHT, json.dumps([x0, x1]))
-    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">"
-            f"<title>{html.escape(title)}</title><style>body{{font:13px sans-serif}}"
-            "svg.panel{display:block;user-select:none}</style></head><body>"
-            f"<h3>{html.escape(title)}</h3><p>time from trigger [s]; drag across an axis to zoom, "
-            f"double-click to show all</p>\n{body}\n<script>{script}</script></body></html>\n")
-
-
-__all__ = ["FORMATS", "Panel", "PlotUnavailable", "Trace", "figure", "html_page", "nice_ticks",
-           "panels", "write_plot"]
+__all__ = ["FORMATS", "GAP", "Panel", "PlotUnavailable", "STATE_AXIS", "STATE_COLOURS", "Span",
+           "Trace", "figure", "gap_limit", "gap_spans", "gaps", "isolated", "panels", "spans", "write_plot"]

@@ -304,7 +304,8 @@ def run(args: argparse.Namespace) -> int:
             outcome = sample_loop(read_row, recorder, Schedule(args.period), progress=progress)
             progress.end()
         title = f"node {args.node}: " + ", ".join(ch.name for ch in channels)
-        written = write_outputs(args, channels, outcome.recorder.rows(), title)
+        written = write_outputs(args, channels, outcome.recorder.rows(), title,
+                                triggered=outcome.recorder.trigger_time is not None)
         print(summary(outcome, channels, written.paths),
               file=sys.stderr if args.csv == "-" else sys.stdout)
         if written.failed:

@@ -101,8 +101,12 @@ def _reason(exc: BaseException) -> str:
 
 
 def write_outputs(args: argparse.Namespace, channels: list[Channel],
-                  rows: Sequence[tuple[float, Sequence[Value]]], title: str) -> Written:
-    """The CSV, then each plot; one failing does not stop the others."""
+                  rows: Sequence[tuple[float, Sequence[Value]]], title: str, *,
+                  triggered: bool = True) -> Written:
+    """The CSV, then each plot; one failing does not stop the others.
+
+    The plots break their lines where ``args.period`` slots were missed, and mark the
+    trigger at time 0 unless the recording was not ``triggered`` (epos_link.tools.plot)."""
     out = Written()
     if args.csv == "-":
         write_csv(sys.stdout, channels, rows)
@@ -116,10 +120,10 @@ def write_outputs(args: argparse.Namespace, channels: list[Channel],
     if args.plot:
         from .plot import panels, write_plot
 
-        found = panels(channels, rows)
+        found = panels(channels, rows, period=getattr(args, "period", 0.0) or 0.0)
         for path in args.plot:
             try:
-                write_plot(path, found, title)
+                write_plot(path, found, title, trigger=0.0 if triggered else None)
                 out.paths.append(path)
             # OSError: the file; ValueError, RuntimeError: what matplotlib's backends
             # raise on a figure they cannot render. Anything else is a bug and keeps
