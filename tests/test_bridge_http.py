@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -146,8 +147,9 @@ def test_page_is_self_contained_html(bridge: Bridge) -> None:
     assert status == 200 and headers["Content-Type"].startswith("text/html")
     assert headers["Connection"] == "close" and int(headers["Content-Length"]) == len(body)
     page = body.decode()
-    assert "<canvas" in page and "/api/stream" in page
-    assert "http://" not in page and "https://" not in page  # no CDN, nothing external
+    assert "new uPlot(" in page and "/api/stream" in page  # uPlot inlined (epos_link/vendor)
+    # No CDN, nothing external: no src= or href= (uPlot's banner names its home page).
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", page)
     assert "<form" not in page and "POST" not in page  # it only reads
 
 

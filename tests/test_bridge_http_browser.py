@@ -5,17 +5,14 @@ command a user types); chromium loads the page; the test checks that every
 configured axis has its row, that a moving axis's position cell follows the
 move, and that the page logged no console error, no uncaught exception and no
 failed load. Screenshots stay under the test's ``tmp_path`` (pytest keeps the
-last runs); ``STATUS_PAGE_SCREENSHOT=docs/status-page.png`` copies the one taken
-during the move there (how docs/status-page.png was made).
+last runs). docs/status-page.png comes from tests/test_status_page_browser.py.
 
 Skipped, with the reason shown, where no chromium is installed (Debian: ``apt
 install chromium``).
 """
 from __future__ import annotations
 
-import os
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -106,7 +103,7 @@ def test_the_page_shows_every_axis_and_follows_a_move(served: Tuple[str, str],
                 == "no"
             assert browser.evaluate("document.getElementById('pos-1').textContent") == "0.000"
             # A few seconds of the move on the plot (more for the picture in docs/).
-            time.sleep(10 if os.environ.get("STATUS_PAGE_SCREENSHOT") else 2)
+            time.sleep(2)
             shot = browser.screenshot(tmp_path / "moving.png")
         finally:
             ok(psi, "2S00=8")
@@ -115,6 +112,3 @@ def test_the_page_shows_every_axis_and_follows_a_move(served: Tuple[str, str],
         assert errors == [], errors
     finally:
         browser.close()
-    target = os.environ.get("STATUS_PAGE_SCREENSHOT")
-    if target:
-        shutil.copyfile(shot, target)

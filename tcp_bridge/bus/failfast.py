@@ -66,8 +66,8 @@ class BusGuard:
         return observe
 
     def refusal(self, node_id: Optional[int]) -> Optional[SilentLink]:
-        reason = self.health.refusal(node_id)
-        return SilentLink(f"bus {self.health.bus}: {reason}") if reason else None
+        reason = self.health.refusal(node_id)  # names its link: "bus can1: device silent ..."
+        return SilentLink(reason) if reason else None
 
     def guarded(self, job: Callable[[], Any], node_id: Optional[int], *,
                 check: bool = True) -> Callable[[], Any]:

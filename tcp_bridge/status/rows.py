@@ -13,11 +13,35 @@ Decoding, with the sources:
   "Modes of operation");
 * error bits (R11, spec 4.b "Interpreting Detailed Error Register"): bit names as
   the PSI specification's table gives them; bits 0 and 14 have no name there.
+
+**The condition** (issue 34: a status page that says why): each row has a
+``condition`` ``{"kind", "text", "reason"}`` for its state cell, worst first:
+
+==============  =====================================================================
+kind            when (this sample)
+==============  =====================================================================
+``no bus``      the bus's device or adapter cannot be opened (``cannot open ...``)
+``bus silent``  the bus's device does not answer (the whole bus is refused at once,
+                :mod:`tcp_bridge.bus.health`)
+``silent``      this node does not answer: declared silent, or its SDO timed out
+                (abort 0x05040000, CiA 301 7.2.4.3.17)
+``error``       any other failed read (an SDO abort, a value that does not fit)
+``fault``       the statusword says FAULT (CiA 402-2 6.4.1.4); the reason is the
+                R11 error bits by name
+``ok``          none of these: the text is the CiA 402 state
+==============  =====================================================================
+
+The reason is said once, even when every read of the sample failed for it; the
+numbers that differ between reads ("silent for 10.1 s", "10.2 s") do not make it
+two. "target reached" (R82) is shown only where it means something: in
+OPERATION ENABLED (CiA 402-2 6.4.1.4: bit 10 is about the target of a running
+mode); a disabled axis at rest has no target (``None``), not "no".
 """
 from __future__ import annotations
 
+import re
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Dict, Final, List, Mapping, Optional
+from typing import TYPE_CHECKING, Any, Dict, Final, List, Mapping, Optional, Tuple
 
 from epos_link.cia402 import state_from_statusword
 
@@ -53,6 +77,52 @@ def mode_name(mode: int) -> str:
     return MODES.get(mode, f"mode {mode}")
 
 
+SDO_TIMED_OUT: Final = 0x05040000  # CiA 301 7.2.4.3.17, "SDO protocol timed out"
+# The words of tcp_bridge.bus.health's refusals: "bus can1: device silent for 1.2 s (why);
+# answered at once, ..." and "bus can1: node 5 silent for ...".
+_REFUSAL = re.compile(r"^bus (?P<bus>\S+): (?P<link>device|node \d+) silent for [\d.]+ s "
+                      r"\((?P<why>.*)\); answered at once")
+_NUMBERS = re.compile(r"\d+(\.\d+)?")
+
+
+def failure_kind(exc: BaseException) -> Tuple[str, str]:
+    """(kind, reason) of a failed read: ``no bus``, ``bus silent``, ``silent`` or ``error``
+    (module docstring). The reason is said without the bus's name twice."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    m = _REFUSAL.match(text)
+    if m is not None:
+        why = m.group("why")
+        if m.group("link") == "device":
+            if why.startswith("cannot open"):
+                return "no bus", f"bus {m.group('bus')}: {why}"
+            return "bus silent", f"bus {m.group('bus')}: its device does not answer ({why})"
+        return "silent", f"{m.group('link')} on bus {m.group('bus')} does not answer ({why})"
+    if getattr(exc, "code", None) == SDO_TIMED_OUT:
+        return "silent", text
+    return "error", text
+
+
+_RANK: Final = {"no bus": 0, "bus silent": 1, "silent": 2, "error": 3}
+
+
+def condition(state: Optional[str], failures: Mapping[int, BaseException],
+              error_bits: Optional[List[str]]) -> Dict[str, str]:
+    """The state cell: ``{"kind", "text", "reason"}`` (module docstring)."""
+    found: Dict[str, Tuple[str, str]] = {}  # the reason without numbers -> (kind, reason)
+    for cmd in sorted(failures):
+        kind, reason = failure_kind(failures[cmd])
+        found.setdefault(_NUMBERS.sub("#", reason), (kind, reason))
+    if found:
+        worst = min(found.values(), key=lambda kr: _RANK[kr[0]])
+        reasons = [worst[1]] + [r for k, r in found.values() if r != worst[1]]
+        text = worst[0] if state is None else f"{state}; {worst[0]}"
+        return {"kind": worst[0], "text": text, "reason": "; ".join(reasons)}
+    if state == "fault":
+        why = ", ".join(error_bits) if error_bits else "see R11 (not read yet) and 603Fh"
+        return {"kind": "fault", "text": "fault", "reason": why}
+    return {"kind": "ok", "text": state or "", "reason": ""}
+
+
 def _int(text: Optional[str]) -> Optional[int]:
     try:
         return None if text is None else int(text, 0)
@@ -68,18 +138,21 @@ def _float(text: Optional[str]) -> Optional[float]:
 
 
 def row(config: "AxisConfig", values: Mapping[int, Optional[str]], *, t: float,
-        errors: Mapping[int, str], last_error: Optional[Mapping[str, Any]],
+        errors: Mapping[int, BaseException], last_error: Optional[Mapping[str, Any]],
         has_drive: bool = True) -> Dict[str, Any]:
     """The JSON object of one axis (see docs/bridge.md, "A live status page").
 
     ``values``: reply text by command number (None: not read this sample, or it
     failed); ``errors``: the failures of this sample by command number;
-    ``last_error``: the newest failure of any sample ({"t", "cmd", "error"}) or None.
+    ``last_error``: the newest failure not yet followed by an answer to its command
+    ({"t", "cmd", "error"}) or None.
     """
-    statusword = _int(values.get(10))
+    statusword = _int(values.get(10)) if 10 not in errors else None
+    state = None if statusword is None else state_name(statusword)
     mode = _int(values.get(15))
     bits = _int(values.get(11))
     reached = _int(values.get(82))
+    names = None if bits is None else error_names(bits)
     return {
         "addr": config.addr,
         "bus": config.bus,
@@ -87,15 +160,18 @@ def row(config: "AxisConfig", values: Mapping[int, Optional[str]], *, t: float,
         "has_drive": has_drive,
         "t": t,
         "statusword": statusword,
-        "state": None if statusword is None else state_name(statusword),
+        "state": state,
+        "condition": condition(state, errors, names) if has_drive
+        else {"kind": "ok", "text": "no drive", "reason": ""},
         "mode": mode,
         "mode_name": None if mode is None else mode_name(mode),
         "position": _float(values.get(12)),
         "velocity": _float(values.get(14)),
-        "target_reached": None if reached is None else bool(reached),
+        "target_reached": None if reached is None or state != "operation enabled"
+        else bool(reached),
         "error_bits": bits,
-        "errors": None if bits is None else error_names(bits),
+        "errors": names,
         "moving_ack": _int(values.get(86)),
-        "failed": {str(cmd): why for cmd, why in sorted(errors.items())},
+        "failed": {str(cmd): failure_kind(exc)[1] for cmd, exc in sorted(errors.items())},
         "last_error": None if last_error is None else dict(last_error),
     }

@@ -42,8 +42,10 @@ axis without a drive (an internal axis with node 0) reads only R86.
 one-minute history (:data:`HISTORY_SECONDS`); the sampler runs from the start of
 ``serve --http`` to its end, watched or not, so a page opened later has its minute.
 
-A failed read is shown, not raised: its command's cell is empty for that sample
-and the axis's ``last_error`` keeps the newest failure (time, command, reason).
+A failed read is shown, not raised: its command's cell is empty for that sample,
+the axis's state cell says what failed and why (:func:`tcp_bridge.status.rows.condition`),
+and its ``last_error`` keeps the newest failure (time, command, reason) until that
+command answers again (then it is cleared: a recovered axis shows no stale error).
 """
 from __future__ import annotations
 
@@ -57,7 +59,7 @@ from typing import Any, Callable, Deque, Dict, Final, List, Optional, Set, Tuple
 from ..errors import BridgeError
 from ..tasks import cancel_and_wait
 from ..wire import ReadRequest, decode_reply
-from .rows import row
+from .rows import failure_kind, row
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +151,7 @@ class Sampler:
         has_drive = axis.port is not None
         cmds = (FAST + SLOW if slow else FAST) if has_drive else (86,)
         values = self._values[addr]
-        errors: Dict[int, str] = {}
+        errors: Dict[int, BaseException] = {}
         for cmd in cmds:
             try:
                 reply = decode_reply(await self.engine.execute(ReadRequest(addr, cmd)))
@@ -160,8 +162,13 @@ class Sampler:
                 if not isinstance(exc, (BridgeError, asyncio.TimeoutError)):
                     log.exception("status sampler: R%02d of axis %d", cmd, addr)
                 values[cmd] = None
-                errors[cmd] = str(exc) or type(exc).__name__
-                self._last_error[addr] = {"t": self.clock(), "cmd": cmd, "error": errors[cmd]}
+                errors[cmd] = exc
+                self._last_error[addr] = {"t": self.clock(), "cmd": cmd,
+                                          "error": failure_kind(exc)[1]}
+            else:
+                last = self._last_error.get(addr)
+                if last is not None and last["cmd"] == cmd:
+                    del self._last_error[addr]  # the command that failed answers again
         return row(axis.config, values, t=self.clock(), errors=errors,
                    last_error=self._last_error.get(addr), has_drive=has_drive)
 
