@@ -1,10 +1,19 @@
 #!/usr/bin/env python3
 """One entry point that sets itself up: ``python3 dev.py start`` or ``python3 dev.py test``.
 
-It creates ``.venv`` beside this file on first use (and again whenever
-pyproject.toml changes), installs the project with its test, plot, ethercat and epics extras
-(and the EPICS clients its tests drive), then runs
-the chosen job inside that environment. Only python3 is needed.
+It creates ``.venv`` beside this file on first use, installs into it what the chosen
+job needs, then runs the job inside that environment. Only python3 is needed.
+
+* ``start`` installs only what the bridge needs (the project and its five
+  dependencies; the ``ethercat`` extra too when the arguments ask for ``--ethercat``),
+  with pip's own progress shown: a first start is a minute or two, not the whole
+  test tool chain (issue 34 item 6).
+* ``test`` and ``shell`` install the rest: the ``test``, ``plot``, ``ethercat`` and
+  ``epics`` extras (and ``epics-clients``, the EPICS clients its tests drive); ``test`` also installs, where it can (root and apt-get), the tools whose
+  tests otherwise skip: tshark, tmux, chromium, iproute2 (as ``.ci/run`` did).
+* ``.venv/.installed`` (the stamp) records the pyproject.toml it was installed
+  from and the extras installed; a job whose extras are all there starts at once,
+  a changed pyproject.toml reinstalls what was there plus what the job needs.
 
 ``start`` runs ``tcp-bridge serve`` with the arguments given: on the embedded
 simulator, unless they name an axis table (``--config FILE``). Ctrl-C or
@@ -15,11 +24,13 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import venv
 from pathlib import Path
+from typing import Any, Callable
 
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
@@ -28,19 +39,91 @@ PY = BIN / ("python.exe" if os.name == "nt" else "python")
 STAMP = VENV / ".installed"
 
 
-def ensure_env() -> None:
-    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
-    if STAMP.exists() and STAMP.read_text() == want and PY.exists():
+ALL_EXTRAS = ("test", "plot", "ethercat", "epics", "epics-clients")  # the whole suite's
+# The tools some tests need; without them those tests skip and say why (.ci/run, issue 11,
+# 25, 26): the command each is found by, and its Debian package.
+TOOLS = {"tshark": "tshark", "tmux": "tmux", "chromium": "chromium", "ip": "iproute2"}
+APT_TIMEOUT = 900  # seconds for one apt-get run (a slow mirror; never for ever)
+
+
+def pyproject_hash() -> str:
+    return hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+
+
+def stamp_extras(stamp_text: str) -> "set[str]":
+    """The extras a stamp lists: ``HASH`` then ``extras: a,b`` on a second line; a
+    stamp of one line is the older dev.py's, which installed all of :data:`ALL_EXTRAS`."""
+    lines = stamp_text.splitlines()
+    if len(lines) == 1:
+        return set(ALL_EXTRAS)
+    listed = lines[1].partition("extras:")[2] if len(lines) > 1 else ""
+    return {e.strip() for e in listed.split(",") if e.strip()}
+
+
+def installed_extras(stamp_text: str, want_hash: str) -> "set[str] | None":
+    """The extras installed from this pyproject.toml, None if the stamp is for another."""
+    lines = stamp_text.splitlines()
+    if not lines or lines[0].strip() != want_hash:
+        return None
+    return stamp_extras(stamp_text)
+
+
+def ensure_env(extras: "tuple[str, ...]" = ALL_EXTRAS, quiet: bool = True) -> None:
+    """.venv with the project and ``extras`` installed (see the module docstring)."""
+    want = pyproject_hash()
+    stamp = STAMP.read_text() if STAMP.exists() and PY.exists() else ""
+    have = installed_extras(stamp, want)
+    if have is not None and set(extras) <= have:
         return
     if not PY.exists():
         print("dev.py: creating .venv", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    print("dev.py: installing the project and its test, plot, ethercat and epics extras into .venv",
-          flush=True)
-    pip = [str(PY), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
-    # plot, ethercat, epics (+ the CA clients pyepics, ophyd, ophyd-async): their tests
-    subprocess.run(pip + ["-e", f"{ROOT}[test,plot,ethercat,epics,epics-clients]"], check=True)
-    STAMP.write_text(want)
+    # Keep what an earlier job installed: a start after a test run must not drop mypy.
+    keep = sorted(set(extras) | (stamp_extras(stamp) if stamp else set()))
+    what = f"and its {', '.join(keep)} extras" if keep else "and what the bridge needs"
+    print(f"dev.py: installing the project {what} into .venv"
+          + ("" if quiet else " (pip's progress below)"), flush=True)
+    pip = [str(PY), "-m", "pip", "install", "--disable-pip-version-check"]
+    if quiet:
+        pip.append("-q")
+    target = f"{ROOT}[{','.join(keep)}]" if keep else str(ROOT)
+    subprocess.run(pip + ["-e", target], check=True)
+    STAMP.write_text(f"{want}\nextras: {','.join(keep)}\n")
+
+
+def missing_tools() -> "list[str]":
+    return [package for command, package in TOOLS.items() if shutil.which(command) is None]
+
+
+def ensure_tools(run: "Callable[..., Any]" = subprocess.run) -> "list[str]":
+    """Install the missing :data:`TOOLS` with apt-get where we may (root); returns the
+    packages still missing. Never fails: their tests skip and say why."""
+    missing = missing_tools()
+    if not missing:
+        return []
+    geteuid = getattr(os, "geteuid", None)
+    if geteuid is None or geteuid() != 0 or shutil.which("apt-get") is None:
+        print(f"dev.py: {', '.join(missing)} not installed; the tests that need them will "
+              f"skip (as root: apt-get install {' '.join(missing)})", flush=True)
+        return missing
+    print(f"dev.py: installing {', '.join(missing)} with apt-get for the tests that need "
+          "them", flush=True)
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    apt = ["apt-get", "-o", "DPkg::Lock::Timeout=300"]
+    install = apt + ["install", "-y", "-q", "--no-install-recommends", *missing]
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "env": env,
+             "timeout": APT_TIMEOUT}
+    try:
+        if run(install, **quiet).returncode != 0:  # an old package list: update, once
+            run(apt + ["update", "-q"], **quiet)
+            run(install, **quiet)
+    except (OSError, subprocess.SubprocessError):
+        pass
+    still = missing_tools()
+    if still:
+        print(f"dev.py: could not install {', '.join(still)}; those tests will skip",
+              flush=True)
+    return still
 
 
 def run_tests(args: list[str]) -> int:
@@ -57,6 +140,12 @@ def run_tests(args: list[str]) -> int:
         print("dev.py: pytest collected no tests; failing", file=sys.stderr)
         return 1
     return rc
+
+
+def start_extras(args: list[str]) -> "tuple[str, ...]":
+    """What ``start`` installs beyond the bridge itself: pysoem for ``--ethercat``."""
+    return ("ethercat",) if any(a == "--ethercat" or a.startswith("--ethercat=")
+                                for a in args) else ()
 
 
 def bridge_command(args: list[str]) -> list[str]:
@@ -123,8 +212,12 @@ def main() -> int:
               file=sys.stderr)
         return 2
     job, rest = sys.argv[1], sys.argv[2:]
-    ensure_env()
+    if job == "start":
+        ensure_env(start_extras(rest), quiet=False)
+    else:
+        ensure_env()
     if job == "test":
+        ensure_tools()
         return run_tests(rest)
     if job == "shell":
         return subprocess.call([str(PY), *rest], cwd=ROOT)

@@ -49,7 +49,7 @@ def test_simulate_only_without_a_source_of_axes(args: List[str], simulate: bool)
 def require_ready_venv() -> None:
     stamp = ROOT / ".venv" / ".installed"
     want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
-    if not stamp.exists() or stamp.read_text() != want:
+    if not stamp.exists() or dev.installed_extras(stamp.read_text(), want) is None:
         pytest.skip("dev.py would (re)install .venv first; run the suite through dev.py test")
 
 
@@ -122,3 +122,85 @@ def test_the_whole_suite_runs_mypy_first_and_a_type_error_fails_it(
 def test_the_packages_are_marked_typed() -> None:
     assert (ROOT / "epos_link" / "py.typed").exists() and (ROOT / "tcp_bridge" / "py.typed").exists()
     assert '"py.typed"' in (ROOT / "pyproject.toml").read_text()
+
+
+# -- a quick first start (issue 34 item 6) ----------------------------------------------------
+
+
+class FakeVenv:
+    """dev.py's paths moved to a temporary checkout; pip calls recorded, not run."""
+
+    def __init__(self, root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        (root / "pyproject.toml").write_text("[project]\nname = 'x'\n")
+        venv_dir = root / ".venv"
+        (venv_dir / "bin").mkdir(parents=True)
+        (venv_dir / "bin" / "python").write_text("")
+        for name, value in (("ROOT", root), ("VENV", venv_dir), ("PY", venv_dir / "bin" / "python"),
+                            ("STAMP", venv_dir / ".installed")):
+            monkeypatch.setattr(dev, name, value)
+        self.root = root
+        self.calls: List[List[str]] = []
+        monkeypatch.setattr(dev.subprocess, "run",
+                            lambda cmd, check=False: self.calls.append(cmd))
+
+    def installs(self) -> List[str]:
+        """The -e target of each pip install, and whether pip was quiet."""
+        return [("-q " if "-q" in c else "") + c[-1].replace(str(self.root), "ROOT")
+                for c in self.calls]
+
+
+def test_start_installs_only_what_the_bridge_needs_and_shows_pips_progress(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """104 s to `listening` on a fresh clone, mypy, hypothesis, matplotlib and pysoem
+    installed to start a bridge, one line of progress: what the user met."""
+    env = FakeVenv(tmp_path, monkeypatch)
+    dev.ensure_env(dev.start_extras(["--axes", "3"]), quiet=False)
+    assert env.installs() == ["ROOT"]  # no extras at all; pip not -q: its progress shows
+    assert "pip's progress below" in capsys.readouterr().out
+    dev.ensure_env(dev.start_extras([]), quiet=False)
+    assert len(env.calls) == 1  # installed already: starts at once
+    dev.ensure_env(dev.start_extras(["--ethercat", "2"]), quiet=False)
+    assert env.installs()[-1] == "ROOT[ethercat]"  # --ethercat needs pysoem
+    dev.ensure_env()  # dev.py test: the rest, kept what was there
+    assert env.installs()[-1] == "-q ROOT[epics,epics-clients,ethercat,plot,test]"
+    dev.ensure_env(dev.start_extras([]), quiet=False)
+    assert len(env.calls) == 3  # a start after a test run reinstalls nothing
+
+
+def test_the_stamp_follows_pyproject_and_reads_the_older_format(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    env = FakeVenv(tmp_path, monkeypatch)
+    dev.STAMP.write_text(dev.pyproject_hash())  # the older dev.py: all three extras
+    dev.ensure_env()
+    assert env.calls == []
+    dev.ensure_env(())
+    assert env.calls == []
+    (tmp_path / "pyproject.toml").write_text("[project]\nname = 'y'\n")
+    dev.ensure_env(())  # pyproject changed: reinstalled, with every extra that was there
+    assert env.installs() == ["-q ROOT[epics,epics-clients,ethercat,plot,test]"]
+    assert dev.STAMP.read_text() == f"{dev.pyproject_hash()}\nextras: epics,epics-clients,ethercat,plot,test\n"
+
+
+def test_dev_py_test_installs_the_tools_of_the_skipping_tests_where_it_may(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    present = {"tmux"}
+    monkeypatch.setattr(dev.shutil, "which",
+                        lambda name: f"/usr/bin/{name}" if name in present | {"apt-get"} else None)
+    runs: List[List[str]] = []
+
+    def apt(cmd: List[str], **kwargs: object) -> subprocess.CompletedProcess:
+        runs.append(cmd)
+        assert kwargs["env"]["DEBIAN_FRONTEND"] == "noninteractive"  # type: ignore[index]
+        if "install" in cmd and any("update" in c for c in runs):
+            present.update({"tshark", "chromium", "ip"})
+        return subprocess.CompletedProcess(cmd, 0 if any("update" in c for c in runs) else 100)
+
+    monkeypatch.setattr(dev.os, "geteuid", lambda: 0)
+    assert dev.ensure_tools(apt) == []
+    assert [c[3] for c in runs] == ["install", "update", "install"]  # an old list: update once
+    assert runs[0][-3:] == ["tshark", "chromium", "iproute2"]
+    monkeypatch.setattr(dev.os, "geteuid", lambda: 1000)
+    present.clear()
+    runs.clear()
+    assert dev.ensure_tools(apt) == ["tshark", "tmux", "chromium", "iproute2"] and runs == []
+    assert "as root: apt-get install tshark tmux chromium iproute2" in capsys.readouterr().out
