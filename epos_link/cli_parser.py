@@ -18,6 +18,7 @@ from the subcommand they were given to, so the line and its ``--help`` hint name
 from __future__ import annotations
 
 import argparse
+import difflib
 from typing import Any, NoReturn, Optional, Sequence
 
 
@@ -28,6 +29,18 @@ class OneLineParser(argparse.ArgumentParser):
         # A message never spans lines today; joining keeps the promise if one ever does.
         text = " ".join(part.strip() for part in message.splitlines() if part.strip())
         self.exit(2, f"{self.prog}: {text} (see {self.prog} --help)\n")
+
+    def _check_value(self, action: argparse.Action, value: Any) -> None:
+        """argparse's check, plus the nearest choice for a typo: ``epos-link reed`` ->
+        ``invalid choice: 'reed' (did you mean 'read'? choose from 'read', ...)``."""
+        choices = action.choices
+        if choices is not None and value not in choices and isinstance(value, str):
+            names = [str(c) for c in choices]
+            close = difflib.get_close_matches(value, names, n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise argparse.ArgumentError(action, f"invalid choice: {value!r} ({hint}choose from "
+                                                 f"{', '.join(repr(n) for n in names)})")
+        super()._check_value(action, value)  # type: ignore[misc]
 
     # typeshed overloads parse_args on the namespace's type; one Any signature serves all.
     def parse_args(self, args: Optional[Sequence[str]] = None,  # type: ignore[override]

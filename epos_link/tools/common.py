@@ -102,8 +102,19 @@ def add_link_options(parser: argparse.ArgumentParser) -> None:
                        "(capture format; replay with replay://FILE)")
 
 
+# The URL this command opened last (one process, one command): report() words the
+# errors whose cause is the URL itself.
+_opened: list[str] = []
+SDO_TIMED_OUT = 0x05040000  # what the gateway answers for a node nobody simulates or wired
+
+
+def _sim_without_drives(url: str) -> bool:
+    return url.lower().startswith("sim://") and "drives=" not in url
+
+
 def open_client(args: argparse.Namespace) -> EposClient:
     """The client of the link options; ``--trace -`` traces to standard output."""
+    _opened[:] = [str(args.url)]
     to_stdout = args.trace == "-"
     client = EposClient.open(args.url, trace=None if to_stdout else args.trace, baudrate=args.baud,
                              gateway_node_id=args.gateway_id, timeout=args.timeout,
@@ -146,8 +157,14 @@ def report(prog: str, exc: BaseException) -> int:
     """The message and exit code of an expected failure."""
     if isinstance(exc, DeviceError):
         where = str(exc).rsplit(": ", 1)[0] if ": " in str(exc) else ""
-        print(f"{prog}: device error 0x{exc.code:08X} {exc.name}" + (f" ({where})" if where else ""),
-              file=sys.stderr)
+        hint = ""
+        if exc.code == SDO_TIMED_OUT and any(_sim_without_drives(u) for u in _opened):
+            # The simulated EPOS4 answers for an absent node as the real one does; the
+            # cause here is the URL, which asked for no drives behind it.
+            hint = ("; sim:// without ?drives= simulates the EPOS4 alone, with no drive "
+                    "behind its gateway: give them, e.g. sim://?drives=2,3")
+        print(f"{prog}: device error 0x{exc.code:08X} {exc.name}" + (f" ({where})" if where else "")
+              + hint, file=sys.stderr)
         return 1
     if isinstance(exc, DeviceSilent):
         print(f"{prog}: {exc}", file=sys.stderr)

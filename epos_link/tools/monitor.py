@@ -25,7 +25,9 @@ Stop with Ctrl-C (or SIGTERM); exit 0, or 2 when the device link failed.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import os
 import queue
 import signal
 import sys
@@ -161,7 +163,13 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
         front = TcpFront(*args.tcp) if args.tcp else PtyFront()
     except OSError as exc:
         device.close()
-        print(f"{prog}: cannot listen: {exc}", file=sys.stderr)
+        # One line as `epos-link sim` says it, with the address once and what to do,
+        # not Python's "[Errno 98] ... (while attempting to bind on address (...))".
+        where = f"on {args.tcp[0]}:{args.tcp[1]}" if args.tcp else "on a pty"
+        why = os.strerror(exc.errno) if exc.errno and exc.errno > 0 else str(exc)
+        hint = ("; another program listens there: stop it, or choose another port "
+                "(port 0 picks a free one)") if exc.errno == errno.EADDRINUSE else ""
+        print(f"{prog}: cannot listen {where}: {why}{hint}", file=sys.stderr)
         return 2
     t0 = time.monotonic()
     start_wall = time.time()

@@ -46,6 +46,7 @@ import re
 import select
 import struct
 import time
+import urllib.parse
 from typing import Any, Callable, Optional
 
 import serial
@@ -115,6 +116,24 @@ def _socket_hint(url: str) -> str:
     return f" (did you mean socket://{url}?)"
 
 
+def _url_problem(url: str) -> Optional[str]:
+    """Why a network URL cannot name a port, said before pyserial would say it in its own
+    words (``'<=' not supported between instances of 'int' and 'NoneType'`` for
+    ``socket://localhost``); None if it can."""
+    scheme = url.partition("://")[0].lower() if "://" in url else ""
+    if scheme not in ("socket", "rfc2217"):
+        return None
+    parts = urllib.parse.urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:  # not a number, or beyond 65535
+        port = -1
+    if not parts.hostname or port is None or not 0 < port < 65536:
+        return (f"cannot open {url}: a {scheme}:// URL needs a host and a port 1..65535: "
+                f"{scheme}://HOST:PORT, e.g. {scheme}://localhost:4001")
+    return None
+
+
 class SerialTransport(Transport):
     """A pyserial port behind the :class:`Transport` interface."""
 
@@ -137,6 +156,9 @@ class SerialTransport(Transport):
     def open(self) -> None:
         if self._port is not None:
             return
+        problem = _url_problem(self.url)
+        if problem is not None:
+            raise TransportError(problem)
         options = dict(self._options)
         if os.name == "posix" and "://" not in self.url:
             # A device path is opened with pyserial's advisory lock (flock): a

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import importlib
 import sys
-from typing import TYPE_CHECKING, Any, Callable, Dict, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Protocol, Sequence
 
 from ..tables.axes import ConfigError
 
@@ -60,12 +60,16 @@ def _entry_points() -> Dict[str, str]:
     return {ep.name: ep.value for ep in found}
 
 
+def known_backends() -> List[str]:
+    """The names a table's ``backend`` may take: the built-in ones and the entry points'."""
+    return sorted({*BACKENDS, *_entry_points()})
+
+
 def factory_for(name: str) -> Callable[..., Backend]:
     """The factory registered for ``name``; ConfigError if there is none or it cannot load."""
     target = BACKENDS.get(name) or _entry_points().get(name)
     if target is None:
-        known = sorted({*BACKENDS, *_entry_points()})
-        raise ConfigError(f"unknown backend {name!r}; known: {', '.join(known)}")
+        raise ConfigError(f"unknown backend {name!r}; known: {', '.join(known_backends())}")
     module_name, _, attr = target.partition(":")
     try:
         module = importlib.import_module(module_name)

@@ -159,6 +159,12 @@ def _buses(value: Any, source: str) -> Dict[str, BusConfig]:
         backend = opts.pop("backend", None)
         if not isinstance(backend, str):
             raise ConfigError(f"{where}: backend: needs backend = \"canopen\"|\"epos\"|\"sim\"")
+        from ..backends import known_backends  # lazily: the registry imports this package
+
+        known_names = known_backends()
+        if backend not in known_names:  # a typo is the table's mistake: said here, with its place
+            raise ConfigError(f"{where}: backend: unknown backend {backend!r}"
+                              f"{suggest(backend, known_names)}; known: {', '.join(known_names)}")
         for key, value in opts.items():
             problem = option_problem(backend, key, value)
             if problem:
