@@ -37,8 +37,9 @@ nothing from the host otherwise, nor through an EPOS4 gateway, which forwards
 SDO only. With ``--json`` these lines go to stderr. The check itself sends no
 heartbeat: it opens buses, the engine is what starts the heartbeat.
 
-Time: a silent device costs its probes (under a second: ``PROBE_TIMEOUT`` of
-:mod:`tcp_bridge.backends.epos` each); an absent node costs one SDO timeout
+Time: a silent device costs its probes (each waits as long as one of ``serve``'s
+requests, the bus's ``timeout``, 0.5 s by default: a device that serve serves is
+never called silent here); an absent node costs one SDO timeout
 (its first read), then the check moves on; one that answers costs a dozen
 uploads. Buses are checked one after the other, each closed before the next opens.
 """
@@ -219,7 +220,9 @@ def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
 def _device_silence(bus: BusConfig, backend: Any) -> Optional[str]:
     """Why the bus's own device is silent (one line naming it), or None if it answers
     or the backend has no ``probe()`` (a CAN adapter: its nodes are asked directly)."""
-    probe = getattr(backend, "probe", None)
+    # The wait of serve's requests, where the backend has it: what serve serves is never
+    # "device silent" here (EposBackend.patient_probe).
+    probe = getattr(backend, "patient_probe", None) or getattr(backend, "probe", None)
     if not callable(probe):
         return None
     why = ""

@@ -66,6 +66,10 @@ def split_requests(texts: Sequence[str]) -> List[str]:
     return [line for line in out if line]
 
 
+NOT_PSI = ("it answered in HTTP: that is a web server (the bridge's --http status page?), "
+           "not a PSI port; the bridge serves PSI on 1912 and 1913 (serve --port)")
+
+
 def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[Reply]:
     """Send each request (CR appended) and decode its 30-byte reply."""
     host, port = parse_address(address)
@@ -77,9 +81,13 @@ def send(address: str, requests: Sequence[str], timeout: float = 10.0) -> List[R
             data = b""
             while len(data) < REPLY_SIZE:
                 chunk = sock.recv(REPLY_SIZE - len(data))
+                if chunk.startswith(b"HTTP/") or data.startswith(b"HTTP/"):
+                    raise MalformedReply(f"{address}: {NOT_PSI}")
                 if not chunk:
                     raise MalformedReply(f"connection closed after {len(data)} bytes of a reply")
                 data += chunk
+            if data.startswith(b"HTTP/"):
+                raise MalformedReply(f"{address}: {NOT_PSI}")
             replies.append(decode_reply(data))
     return replies
 

@@ -99,3 +99,63 @@ def test_sim_without_drives_says_why_node_2_does_not_answer(
 def test_a_misspelt_command_suggests_the_nearest(main: object, argv: List[str], line: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     assert run(main, argv, capsys) == (2, line + "\n")
+
+
+def test_send_to_the_status_page_port_says_it_is_http(capsys: pytest.CaptureFixture[str]) -> None:
+    """`tcp-bridge send 127.0.0.1:8080 1R10` to the --http port said only `connection
+    closed after 0 bytes`, after the page's 10 s head timeout."""
+    import asyncio
+    import threading
+
+    from tcp_bridge.status.http import StatusServer
+
+    class NoSampler:
+        latest = None
+
+        async def close(self) -> None:
+            pass
+
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    server = asyncio.run_coroutine_threadsafe(
+        StatusServer(NoSampler(), "127.0.0.1", 0).start(), loop).result(30)  # type: ignore[arg-type]
+    try:
+        host, port = server.addresses[0]
+        code, err = run(tcp_bridge, ["send", f"{host}:{port}", "1R10", "--timeout", "30"], capsys)
+    finally:
+        asyncio.run_coroutine_threadsafe(server.close(), loop).result(30)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(5)
+        loop.close()
+    assert (code, err) == (2, f"tcp-bridge: {host}:{port}: it answered in HTTP: that is a web "
+                              "server (the bridge's --http status page?), not a PSI port; the "
+                              "bridge serves PSI on 1912 and 1913 (serve --port)\n")
+
+
+def test_check_calls_silent_only_what_serve_would_not_serve(tmp_path: Path) -> None:
+    """An EPOS4 that answers in 0.3 s: serve (0.5 s per request) serves it; check probed
+    for 0.2 s and called it "device silent". Now both wait the bus's `timeout`."""
+    import json
+    import subprocess
+    import sys
+
+    from epos_link.simulator.core import Epos4Simulator
+    from epos_link.simulator.link import LinkOptions, TcpLink
+    from tests.test_cli_scan import Listening
+
+    sim = Epos4Simulator(1, [2])
+    link = TcpLink(Listening(sim), LinkOptions(delay=0.3)).start()
+    config = tmp_path / "axes.toml"
+    config.write_text(f'[bridge]\nstate_file = "{tmp_path / "state.json"}"\n'
+                      f'[bus.can1]\nbackend = "epos"\nurl = "{link.url}"\ntimeout = 1.0\n'
+                      '[[axis]]\nnode_id = 1\n')
+    try:
+        out = subprocess.run([sys.executable, "-m", "tcp_bridge.cli", "check", "--config",
+                              str(config), "--json"], capture_output=True, text=True,
+                             timeout=120)
+    finally:
+        link.close()
+        sim.close()
+    verdicts = [json.loads(line)["verdict"] for line in out.stdout.splitlines()]
+    assert verdicts == ["found"], out.stdout + out.stderr

@@ -89,6 +89,13 @@ class EposBackend:
         self.client.read_object(0, 0x1000, 0, timeout=min(self.client.timeout, PROBE_TIMEOUT),
                                 retries=0)
 
+    def patient_probe(self) -> None:
+        """:meth:`probe` with the wait of an ordinary request (``timeout``, 0.5 s by default)
+        instead of the short one: ``tcp-bridge check`` calls a device silent only when
+        ``serve``'s requests would find it silent too (issue 34: a device answering in
+        0.3 s was "silent" to check, which probed for 0.2 s, and served by serve)."""
+        self.client.read_object(0, 0x1000, 0, timeout=self.client.timeout, retries=0)
+
     def describe_silence(self, why: str) -> str:
         """One line for a failed :meth:`probe`: the device, its URL, what to check."""
         from epos_link.transports import silence_hint

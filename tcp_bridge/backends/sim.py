@@ -166,6 +166,9 @@ class SimBackend:
         """The simulated EPOS4 itself answers (see :meth:`EposBackend.probe`)."""
         self.epos.probe()
 
+    def patient_probe(self) -> None:
+        self.epos.patient_probe()
+
     def drive(self, node_id: int) -> Any:
         """The simulated drive model of ``node_id`` (fault injection in tests)."""
         return self.simulator.drive(node_id)

@@ -52,6 +52,10 @@ _REASONS: Final = {200: "OK", 400: "Bad Request", 404: "Not Found",
                    503: "Service Unavailable"}
 
 
+class NotHttp(ValueError):
+    """The first byte of a request cannot begin an HTTP method."""
+
+
 def parse_address(text: str) -> Tuple[str, int]:
     """``--http``'s value: ``HOST:PORT``, ``[v6]:PORT`` or ``PORT`` (host 127.0.0.1)."""
     host, sep, port = text.rpartition(":")
@@ -159,9 +163,15 @@ class StatusServer:
 
     async def _answer(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
-            head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), HEAD_TIMEOUT)
+            head = await asyncio.wait_for(self._head(reader), HEAD_TIMEOUT)
         except asyncio.IncompleteReadError:
             return  # closed before the end of its head
+        except NotHttp:
+            # A PSI request sent here by mistake (`tcp-bridge send` to this port): a PSI
+            # line ends in CR alone, so its head would never end; say so at once.
+            await self._simple(writer, 400, b"not HTTP: this is the bridge's status page; "
+                                            b"PSI requests go to its PSI ports (1912, 1913)\n")
+            return
         except asyncio.LimitOverrunError:
             await self._simple(writer, 431, b"request head too large\n")
             return
@@ -187,6 +197,15 @@ class StatusServer:
             await self._stream(writer)
         else:
             await self._simple(writer, 404, b"not found\n")
+
+    @staticmethod
+    async def _head(reader: asyncio.StreamReader) -> bytes:
+        """The request head; :class:`NotHttp` at once if it cannot start an HTTP request
+        line (a method is letters, RFC 9110 9.1; a PSI request starts with its axis)."""
+        first = await reader.readexactly(1)
+        if not first.isalpha():
+            raise NotHttp()
+        return first + await reader.readuntil(b"\r\n\r\n")
 
     async def _json(self, writer: asyncio.StreamWriter, body: Dict[str, Any]) -> None:
         await self._simple(writer, 200, json.dumps(body).encode("utf-8"), "application/json")
