@@ -355,6 +355,29 @@ def version() -> str:
     return f"{installed} (PSI TCP-IP to CANopen gateway protocol rev 2.3)"
 
 
+# Libraries whose own lines the bridge already says in its words (its NAK reasons at
+# -v, its bus-silence lines): shown only at -vv.
+QUIET_LIBRARIES = (
+    # canopen logs an absent node's SDO timeout as an error ("Transfer aborted by
+    # client"); at -v its INFO lines would drown the bridge's (147 of 152 at start-up,
+    # the simulated drives' SDO server among them).
+    "canopen",
+    # python-can's socketcand interface warns of every frame it cannot parse and of
+    # each failed receive or connection (issue 34: its chatter reached the log at the
+    # default level); a bus that stops answering is the bridge's own warning.
+    "can.interfaces.socketcand",
+)
+
+
+def configure_logging(verbose: int, debug: bool = False) -> None:
+    level = logging.INFO if verbose or debug else logging.WARNING
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
+    logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
+    logging.getLogger("tcp_bridge.bus.sdo").setLevel(logging.INFO)
+    for name in QUIET_LIBRARIES:
+        logging.getLogger(name).setLevel(logging.CRITICAL if verbose < 2 else logging.NOTSET)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser().parse_args(argv)
     if args.command == "send":
@@ -367,16 +390,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from .check import run as run_check
 
         return run_check(args, prog=f"{PROG} check")
-    level = logging.INFO if args.verbose or args.debug else logging.WARNING
-    logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
-    logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
-    logging.getLogger("tcp_bridge.bus.sdo").setLevel(logging.INFO)
-    if args.verbose < 2:
-        # canopen logs an absent node's SDO timeout as an error ("Transfer aborted
-        # by client"); the bridge already answers it NAK and says why with -v/91.
-        # At -v its INFO lines would drown the bridge's (147 of 152 at start-up,
-        # the simulated drives' SDO server among them): they come at -vv.
-        logging.getLogger("canopen").setLevel(logging.CRITICAL)
+    configure_logging(args.verbose, args.debug)
     sim = None
     if args.ethercat is not None:
         from .backends.ethercat_sim import start

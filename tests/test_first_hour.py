@@ -159,3 +159,25 @@ def test_check_calls_silent_only_what_serve_would_not_serve(tmp_path: Path) -> N
         sim.close()
     verdicts = [json.loads(line)["verdict"] for line in out.stdout.splitlines()]
     assert verdicts == ["found"], out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("verbose, shown", [(0, False), (1, False), (2, True)])
+def test_python_cans_socketcand_chatter_stays_out_of_the_bridge_log(
+        verbose: int, shown: bool, caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    from tcp_bridge.cli import configure_logging
+
+    chatter = logging.getLogger("can.interfaces.socketcand")
+    try:
+        configure_logging(verbose)
+        with caplog.at_level(logging.NOTSET):
+            chatter.warning("Could not parse ascii message: < hi >")
+            chatter.error("Failed to receive: timed out")
+            logging.getLogger("tcp_bridge.bus.failfast").warning("bus can1: silent")
+    finally:
+        chatter.setLevel(logging.NOTSET)
+        logging.getLogger("canopen").setLevel(logging.NOTSET)
+    names = [r.name for r in caplog.records]
+    assert ("can.interfaces.socketcand" in names) is shown
+    assert "tcp_bridge.bus.failfast" in names  # the bridge's own line is always there
