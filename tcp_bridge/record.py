@@ -275,7 +275,8 @@ def run(args: argparse.Namespace) -> int:
         session.close()
     title = f"axis {args.axis} through the bridge at {args.address}: " + ", ".join(
         ch.name for ch in channels)
-    written = write_outputs(args, channels, outcome.recorder.rows(), title)
+    written = write_outputs(args, channels, outcome.recorder.rows(), title,
+                            triggered=outcome.recorder.trigger_time is not None)
     print(summary(outcome, channels, written.paths),
           file=sys.stderr if args.csv == "-" else sys.stdout)
     if written.failed:

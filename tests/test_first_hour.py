@@ -94,7 +94,7 @@ def test_sim_without_drives_says_why_node_2_does_not_answer(
      "'restore', 'ports', 'record', 'watch', 'sim') (see epos-link --help)"),
     (tcp_bridge, ["sned", "127.0.0.1:1912", "1R10"],
      "tcp-bridge: argument command: invalid choice: 'sned' (did you mean 'send'? choose from "
-     "'serve', 'check', 'send') (see tcp-bridge --help)"),
+     "'serve', 'check', 'record', 'send') (see tcp-bridge --help)"),
 ])
 def test_a_misspelt_command_suggests_the_nearest(main: object, argv: List[str], line: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
