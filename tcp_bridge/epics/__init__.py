@@ -6,8 +6,9 @@ travels:
 
 * :mod:`.server` (caproto's context: allow-list, loopback, beacons),
 * :mod:`.pvs` (the channels of one record; a put hands over to the record),
-* :mod:`.axis` (one axis's record: puts become PSI requests through
-  :meth:`tcp_bridge.engine.Engine.execute`, readbacks PSI reads),
+* :mod:`.axis` (one axis's record, the motion runner: puts become PSI requests
+  through :meth:`tcp_bridge.engine.Engine.execute`),
+* :mod:`.readback` (its polls, monitors and alarm: readbacks are PSI reads),
 * :mod:`.record` and :mod:`.fields` (pure: the motor record's arithmetic and fields),
 * :mod:`.names` (pure: record names and the CA server's environment).
 
