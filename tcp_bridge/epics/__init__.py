@@ -23,6 +23,12 @@ INSTALL_HINT = ("--epics needs caproto, the optional extra [epics]: "
                 "pip install 'epos-link[epics]' (in a checkout: .venv/bin/pip install -e '.[epics]')")
 
 
+class PutRefused(ValueError):
+    """A CA put the bridge refused (a PSI CAN: a value the command table refuses, or a
+    value the record cannot take): the put fails with ECA_PUTFAIL, the record's
+    ``-MsgTxt`` says why and the log has one line for it (no traceback)."""
+
+
 def missing() -> Optional[str]:
     """None when caproto can be imported, else the one line that says how to get it."""
     try:

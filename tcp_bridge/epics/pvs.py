@@ -29,6 +29,7 @@ from caproto import (AccessRights, ChannelAlarm, ChannelChar, ChannelData, Chann
 
 from caproto.server.common import HIGH_LOAD_TIMEOUT
 
+from . import PutRefused
 from . import fields as F
 from .axis import AxisRecord
 
@@ -53,7 +54,13 @@ class _Field:
         return AccessRights.READ
 
     async def verify_value(self, value: Any) -> Any:
-        await self.on_put(self.spec.name, value)
+        try:
+            await self.on_put(self.spec.name, value)
+        except PutRefused:
+            raise  # the PSI table refused it: logged once, -MsgTxt says why
+        except (ValueError, IndexError) as exc:  # a value the record cannot take
+            await self.record.refused(f"{self.spec.name}: {_shown(value)}", str(exc))
+            raise PutRefused(f"{self.owner.name}.{self.spec.name}: {exc}") from None
         await self.owner.drain()
         return SkipWrite  # the record posted what the put made (or nothing)
 
@@ -206,21 +213,21 @@ class RecordChannels:
 
 
 async def _val(r: AxisRecord, v: Any) -> None:
-    await r.move(r.frame.dial(float(v)))
+    await r.move(r.frame.dial(float(v)), "VAL")
 
 
 async def _dval(r: AxisRecord, v: Any) -> None:
-    await r.move(float(v))
+    await r.move(float(v), "DVAL")
 
 
 async def _rval(r: AxisRecord, v: Any) -> None:
-    await r.move(int(v) * float(r.values["MRES"]))
+    await r.move(int(v) * float(r.values["MRES"]), "RVAL")
 
 
 async def _rlv(r: AxisRecord, v: Any) -> None:
     target = float(r.values["VAL"]) + float(v)
     await r.post({"RLV": 0.0, "LRLV": float(v)})
-    await r.move(r.frame.dial(target))
+    await r.move(r.frame.dial(target), "RLV")
 
 
 def _tweak(sign: int, field: str) -> Callable[[AxisRecord, Any], Awaitable[None]]:
@@ -229,7 +236,7 @@ def _tweak(sign: int, field: str) -> Callable[[AxisRecord, Any], Awaitable[None]
             return
         target = float(r.values["VAL"]) + sign * float(r.values["TWV"])
         try:
-            await r.move(r.frame.dial(target))
+            await r.move(r.frame.dial(target), field)
         finally:
             await r.post({field: 0})
     return tweak
@@ -251,14 +258,16 @@ def _home(field: str) -> Callable[[AxisRecord, Any], Awaitable[None]]:
     return home
 
 
-async def _enable(r: AxisRecord, v: Any) -> None:
-    on = F.menu_index(F.BY_NAME["CNEN"], v) if isinstance(v, str) else int(v)
-    if await r.act((4, 1 if on else 0), why="enable" if on else "disable"):
-        await r.poll()
+def _enable(field: str) -> Callable[[AxisRecord, Any], Awaitable[None]]:
+    async def enable(r: AxisRecord, v: Any) -> None:
+        on = F.menu_index(F.BY_NAME["CNEN"], v) if isinstance(v, str) else int(v)
+        if await r.act((4, 1 if on else 0), why=f"{field}: {'enable' if on else 'disable'}"):
+            await r.poll()
+    return enable
 
 
 async def _reset(r: AxisRecord, v: Any) -> None:
-    if int(v) and await r.act((17, 1), why="fault reset"):
+    if int(v) and await r.act((17, 1), why="Reset: fault reset"):
         await r.poll(slow=True)
 
 
@@ -318,27 +327,27 @@ async def _velo(r: AxisRecord, v: Any) -> None:
     if vmax > 0:
         velo = min(velo, vmax)  # special() VELO: range_check(velo, vbas, vmax)
     accl = float(r.values["ACCL"]) or 0.1
-    if await r.act((5, velo), (6, velo / accl), why="set VELO"):
+    if await r.act((5, velo), (6, velo / accl), why=f"VELO: set {velo:g}"):
         await r.poll(slow=True)
 
 
 async def _accl(r: AxisRecord, v: Any) -> None:
     accl = float(v) if float(v) > 0 else 0.1  # special() ACCL: 0.1 when not positive
     velo = float(r.values["VELO"])
-    if velo > 0 and await r.act((6, velo / accl), why="set ACCL"):
+    if velo > 0 and await r.act((6, velo / accl), why=f"ACCL: set {accl:g}"):
         await r.post({"ACCL": accl})
         await r.poll(slow=True)
 
 
 async def _vmax(r: AxisRecord, v: Any) -> None:
-    if await r.act((26, abs(float(v))), why="set VMAX"):
+    if await r.act((26, abs(float(v))), why=f"VMAX: set {abs(float(v)):g}"):
         await r.poll(slow=True)
 
 
 PUTS: Dict[str, Callable[[AxisRecord, Any], Awaitable[None]]] = {
     "VAL": _val, "DVAL": _dval, "RVAL": _rval, "RLV": _rlv,
     "TWF": _tweak(1, "TWF"), "TWR": _tweak(-1, "TWR"), "STOP": _stop, "SPMG": _spmg,
-    "HOMF": _home("HOMF"), "HOMR": _home("HOMR"), "CNEN": _enable, "Enable": _enable,
+    "HOMF": _home("HOMF"), "HOMR": _home("HOMR"), "CNEN": _enable("CNEN"), "Enable": _enable(":Enable"),
     "Reset": _reset, "SYNC": _sync, "OFF": _off, "DIR": _dir,
     "SET": _menu("SET"), "FOFF": _menu("FOFF"),
     "SSET": _switch("SET", "Set", "SSET"), "SUSE": _switch("SET", "Use", "SUSE"),
@@ -349,6 +358,18 @@ PUTS: Dict[str, Callable[[AxisRecord, Any], Awaitable[None]]] = {
 }
 """The put of each ``put`` field (its docstring in :mod:`tcp_bridge.epics.axis`)."""
 assert {f.name for f in F.FIELDS if f.role == "put"} | {"Enable", "Reset"} == set(PUTS)
+
+
+def _shown(value: Any) -> str:
+    """A put's value as the log shows it: the one element of a CA array, as text."""
+    if hasattr(value, "tolist"):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)) and len(value) == 1:
+        value = value[0]
+    if isinstance(value, bytes):
+        value = value.decode("latin-1")
+    return repr(value) if isinstance(value, str) else f"{value:g}" \
+        if isinstance(value, float) else str(value)
 
 
 def _units(field: str, egu: str) -> str:

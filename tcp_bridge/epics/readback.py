@@ -27,26 +27,33 @@ import asyncio
 import logging
 import math
 import time
-from typing import Any, Awaitable, Callable, Dict, List, Optional, Tuple
+from typing import Any, Awaitable, Callable, Dict, Optional, Tuple
 
+from . import PutRefused
 from . import fields as F
 from .record import Frame, Sample, alarm, live_fields
 from ..bus.sdo import NodeSilent
+from ..tables.axes import DeviceCode
 from ..errors import BridgeError, BusUnavailable, InvalidCommand, SilentLink
 from ..tasks import cancel_and_wait
 from ..wire import ReadRequest, Request, WriteRequest, decode_reply, format_value
 
 log = logging.getLogger(__name__)
 
-MOVING_PERIOD = 0.2  # s between polls while the axis moves (or a motion put waits)
-IDLE_PERIOD = 0.5  # s between polls at rest, while someone subscribes
+MOVING_PERIOD = 0.1  # s from poll to poll while the axis moves (or a motion put waits)
+IDLE_PERIOD = 0.5  # s from poll to poll at rest, while someone subscribes
 SLOW_EVERY = 10  # every 10th poll also reads speeds, limits and errors
 OVERDUE = 0.4  # s: a read unanswered this long raises the COMM alarm (issue 33: "within a second")
 FAST = (10, 12, 14, 82, 83)
 SLOW = (5, 6, 26, 33, 34, 13, 11)
 FAST_TRANSFERS = 6  # R82 costs 2 when bit 10 alone says "reached" (tcp_bridge.plan.reads)
 SLOW_TRANSFERS = 11  # 05 06 26 33 34 13: one each; R11: 603Fh, 60FDh, (+3 on a limit error)
-MIP_MOVE, MIP_HOME, MIP_STOP, MIP_EXTERNAL = 0x0020, 0x0008, 0x0200, 0x8000
+# motorRecord.cc's MIP bits (the "motion in progress" field).
+MIP_HOME, MIP_MOVE, MIP_RETRY, MIP_STOP, MIP_EXTERNAL = 0x0008, 0x0020, 0x0040, 0x0200, 0x8000
+# maxon EPOS4 Firmware Specification, "Statusword" (6041h) bit 15: position referenced
+# to home position; set by a completed homing, cleared by the drive when it loses it
+# (epos_link.cia402.SW.POSITION_REFERENCED). Manufacturer-specific: EPOS4 axes only.
+REFERENCED = 1 << 15
 
 # Nobody answered (a silent bus, link or node), as opposed to a drive that refused.
 SILENCE = (BusUnavailable, SilentLink, NodeSilent, asyncio.TimeoutError)
@@ -87,17 +94,14 @@ class Readbacks:
         self.post: Post = self._store
         self.sample = Sample()
         self.problem: Optional[str] = None  # the last refused request, until one succeeds
-        self.homed = False
+        self.homed = False  # MSTA's homed bit: the drive's (EPOS4), else our last homing's
         self.window = mres  # the drive's position window (R13), in dial units
         self.subscribers = 0
-        self.pending: Optional[Tuple[str, float]] = None  # ("move", dval) or ("home", 0)
-        self.waiters: List["asyncio.Future[None]"] = []
-        self.stop_gen = 0
-        self.stopped = False
         self.external = False
         self.direction = 1
         self.polls = 0
-        self.last_poll = -math.inf
+        self.last_poll = -math.inf  # when the last poll ended
+        self.poll_began = -math.inf  # when the last poll started (the pace of polls)
         self._polling: Optional["asyncio.Future[Sample]"] = None
         self._poll_gen = 0  # act_gen when the running poll began
         self.act_gen = 0  # requests of this record answered so far
@@ -128,9 +132,14 @@ class Readbacks:
         tasks = [t for t in (self._runner, self._watcher) if t is not None]
         if tasks:
             await cancel_and_wait(tasks, 5.0)
-        for fut in self.waiters:
-            if not fut.done():
-                fut.set_result(None)
+        self.release()
+
+    def release(self) -> None:
+        """Complete the puts that wait for a motion (the motion runner has them)."""
+
+    def motion_owned(self) -> bool:
+        """A motion of this record runs, or waits for SPMG Go (the runner says)."""
+        return self._runner is not None
 
     def subscribed(self, count: int) -> None:
         """``count`` CA subscriptions to fields of this record now (0: stop polling)."""
@@ -147,20 +156,29 @@ class Readbacks:
         return decode_reply(await self.engine.execute(request)).value
 
     async def act(self, *requests: Tuple[int, Any], why: str) -> bool:
-        """Writes of one put, back to back; False (and the reason in -MsgTxt) if refused."""
+        """Writes of one put, back to back; False if the drive or the bus refused them
+        (NAK: the put itself completes, the record shows STATE/MAJOR); PutRefused if the
+        PSI table refused a value (CAN: the CA put fails, ECA_PUTFAIL). Either way the
+        reason goes to -MsgTxt and one line to the log (at -v, as the PSI ports' NAK
+        and CAN reasons)."""
         try:
             await self.engine.execute_all(
                 [WriteRequest(self.addr, cmd, _text(v)) for cmd, v in requests])
             self.act_gen += 1
-        except InvalidCommand:
-            raise  # a value the PSI table refuses: the put fails (CA ECA_PUTFAIL)
+        except InvalidCommand as exc:
+            await self.refused(why, reason(exc))
+            raise PutRefused(f"axis {self.addr}: {why}: {reason(exc)}") from None
         except (BridgeError, asyncio.TimeoutError) as exc:
-            self.problem = f"{why}: {reason(exc)}"
-            log.info("axis %d: %s", self.addr, self.problem)
-            await self._publish(self.sample)
+            await self.refused(why, reason(exc))
             return False
         self.problem = None
         return True
+
+    async def refused(self, why: str, text: str) -> None:
+        """A request of this record was refused: one log line, the reason in -MsgTxt."""
+        self.problem = f"{why}: {text}"
+        log.info("EPICS axis %d: %s refused: %s", self.addr, why, text)
+        await self._publish(self.sample)
 
     # -- polling -----------------------------------------------------------------------
 
@@ -173,6 +191,7 @@ class Readbacks:
             if started >= self.act_gen and not slow:
                 return sample
         self._poll_gen = self.act_gen
+        self.poll_began = self.clock()
         self._polling = asyncio.get_running_loop().create_future()
         try:
             sample = await self._read(slow or self.polls % SLOW_EVERY == 0)
@@ -248,7 +267,19 @@ class Readbacks:
         if changes:
             await self.post({k: v for k, v in changes.items() if self.values.get(k) != v})
 
+    async def pace(self, period: float) -> None:
+        """Wait until ``period`` s after the last poll began: polls start at most once a
+        period (the bound of :func:`max_transfers_per_second`), and a poll that takes a
+        while does not stretch the period (as asyn's movingPollPeriod)."""
+        await asyncio.sleep(max(0.0, self.poll_began + period - self.clock()))
+
+    def referenced_bit(self) -> bool:
+        """Whether the drive itself says it is homed: statusword bit 15 of an EPOS4."""
+        return self.engine.axes[self.addr].device is DeviceCode.C_DC_MAXON_EPOS4
+
     async def _publish(self, sample: Sample) -> None:
+        if sample.statusword is not None and self.referenced_bit():
+            self.homed = bool(sample.statusword & REFERENCED)  # the drive decides
         live = live_fields(sample, self.frame, dval=float(self.values["DVAL"]),
                            homed=self.homed, problem=self.problem,
                            last_direction=self.direction)
@@ -272,20 +303,38 @@ class Readbacks:
                     await asyncio.sleep(self.moving_period)  # the runner polls
                     continue
                 sample = await self.poll()
-                if sample.moving and not self.external and self._runner is None:
+                if self.motion_owned():
+                    pass  # paused: a motion of ours waits for SPMG Go, DMOV stays 0
+                elif sample.moving and not self.external:
                     self.external = True
                     await self.post({"DMOV": 0, "MIP": MIP_EXTERNAL})
-                elif self.external and not sample.moving and self._runner is None:
+                elif self.external and not sample.moving:
                     self.external = False
+                    await self._external_homing(sample)
                     await self._sync()
                     await self.post({"MIP": 0, "DMOV": 1})
-                await asyncio.sleep(self.moving_period if sample.moving else self.idle_period)
+                await self.pace(self.moving_period if sample.moving else self.idle_period)
         except asyncio.CancelledError:
             raise
         except Exception:
             log.exception("axis %d: EPICS poll failed", self.addr)
         finally:
             self._watcher = None
+
+    async def _external_homing(self, sample: Sample) -> None:
+        """After a motion another client started: was it a homing that ended well? The
+        drive in homing mode (R15 = 6) with R82 = 1 is "homing attained" without error
+        (tcp_bridge.plan.reads, CiA 402-2 6.6). An EPOS4 says it in every statusword."""
+        if self.referenced_bit() or sample.reached != 1:
+            return
+        try:
+            mode = await self.ask(15)
+        except (BridgeError, asyncio.TimeoutError) as exc:
+            log.info("EPICS axis %d: R15 after a motion by others: %s", self.addr, reason(exc))
+            return
+        if _int(mode) == 6:
+            self.homed = True
+            await self._publish(self.sample)
 
     async def _sync(self) -> None:
         """``syncTargetPosition()``: VAL, DVAL, RVAL (and the last ones) = the readback."""

@@ -28,7 +28,7 @@ from caproto import CaprotoError
 from caproto.asyncio.server import Context
 from caproto.asyncio.utils import _create_udp_socket
 
-from . import names
+from . import PutRefused, names
 from .axis import IDLE_PERIOD, MOVING_PERIOD, AxisRecord
 from .pvs import RecordChannels, build
 from ..access import Network, is_allowed
@@ -41,12 +41,28 @@ MAX_LOGGED = 64  # refused search addresses logged (a bound: one line each)
 START_TIMEOUT = 10.0  # s for caproto to bind its sockets
 
 
+class _RefusedPuts(logging.Filter):
+    """Drops caproto's "Invalid write request" record (with its traceback) for a put the
+    bridge refused on purpose (:class:`~tcp_bridge.epics.PutRefused`): the record has
+    logged one line for it already. caproto still answers the put with ECA_PUTFAIL
+    (``caproto.server.common``, ``handle_write``). Any other exception keeps its
+    traceback: that one is a bug."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, PutRefused)
+
+
+REFUSED_PUTS = _RefusedPuts()
+
+
 class BridgeContext(Context):  # type: ignore[misc]
     """caproto's server context with the bridge's allow-list and beacon addresses."""
 
     def __init__(self, pvdb: Any, interfaces: List[str], allow: Sequence[Network],
                  beacons: Optional[List[Tuple[str, int]]]) -> None:
         super().__init__(pvdb, interfaces)
+        logging.getLogger("caproto.circ").addFilter(REFUSED_PUTS)  # once: a set of one
         self.allow = tuple(allow)
         self.beacons = beacons
         self.refused: Set[str] = set()
