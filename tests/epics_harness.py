@@ -8,8 +8,9 @@ process, on loopback with a port of their own (issue 33).
   PSI address it printed.
 * :func:`run_client`: a client script (pyepics, ophyd, ophyd-async) in its own Python
   process; it prints one JSON object, which is returned.
-* :class:`Console`: a pyepics process that takes commands on stdin (get, put, monitor
-  events), for tests that interleave a CA client with a PSI client.
+* :class:`Console`: a pyepics process that takes commands on stdin (get, put, a put
+  with callback that does not block and whether it completed, monitor events), for
+  tests that interleave a CA client with a PSI client.
 
 Skips: :data:`NO_SERVER` (caproto missing: the [epics] extra) and :func:`no_client`
 (a client library missing: the epics-clients extra), each with the reason shown.
@@ -26,6 +27,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
@@ -102,17 +104,27 @@ class Served:
             if "EPICS Channel Access on" in line or self.proc.poll() is not None:
                 break
         assert self.psi and "EPICS Channel Access on" in self.lines[-1], "".join(self.lines)
+        self.output: List[str] = []  # what it printed since it started, as it comes
+        # Drained as it comes: a bridge run with -v must never block on a full pipe.
+        self._reader = threading.Thread(target=self._drain, daemon=True)
+        self._reader.start()
+
+    def _drain(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.output.append(line)
 
     def close(self) -> str:
-        """Stop the bridge (SIGINT, its clean exit); its remaining output."""
+        """Stop the bridge (SIGINT, its clean exit); what it printed after it started."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
         try:
-            out, _ = self.proc.communicate(timeout=60)
+            self.proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            out, _ = self.proc.communicate(timeout=10)
-        return out
+            self.proc.wait(timeout=10)
+        self._reader.join(10)
+        return "".join(self.output)
 
 
 def run_client(script: str, env: Dict[str, str], timeout: float = 180.0) -> Dict[str, Any]:
@@ -141,6 +153,14 @@ for line in sys.stdin:
         elif op == "put":
             out = epics.caput(cmd["pv"], cmd["value"], wait=cmd.get("wait", False),
                               timeout=cmd.get("timeout", 60))
+        elif op == "put_async":  # a put with callback that does not block the console
+            pv = pvs.get(cmd["pv"]) or epics.PV(cmd["pv"])
+            pv.wait_for_connection(10)
+            pvs[cmd["pv"]] = pv
+            pv.put(cmd["value"], wait=False, use_complete=True)
+            out = True
+        elif op == "complete":  # whether the last put_async of the PV has completed
+            out = bool(pvs[cmd["pv"]].put_complete)
         elif op == "monitor":
             pv = epics.PV(cmd["pv"], callback=on_change, auto_monitor=True)
             pv.wait_for_connection(10)

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Optional
 
 from . import PutRefused
+from . import fields as F
 from .readback import (IDLE_PERIOD, MIP_HOME, MIP_MOVE, MIP_RETRY, MIP_STOP, MOVING_PERIOD,
                        Readbacks, _float, max_transfers_per_second)
 from .record import Sample, nint, too_small, violates
@@ -195,10 +196,10 @@ class AxisRecord(Readbacks):
         the running move (the sign of RDIF is not CDIR) by more than NTMF x (|BDST| +
         RDBD)."""
         new = self.pending
-        if new is None or new.kind != "move" or sample.position is None \
-                or self.values["NTM"] != "YES":
-            return False
         v = self.values
+        if new is None or new.kind != "move" or sample.position is None \
+                or F.menu_index(F.BY_NAME["NTM"], v["NTM"]) != F.YESNO_MENU.index("YES"):
+            return False
         rdif = nint((new.dval - sample.position) / float(v["MRES"]))
         deadband = float(v["NTMF"]) * (abs(float(v["BDST"])) + float(v["RDBD"]))
         return int(rdif >= 0) != self.cdir and abs(new.dval - sample.position) > deadband
