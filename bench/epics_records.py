@@ -10,10 +10,11 @@
 2. **monitor update rate**: RBV monitor events per second while the axis moves at
    a constant 5 mm/s for 4 s (a subscriber is what makes the record poll).
 
-Goals (**chosen**): zero-length put-to-completion p50 < 100 ms (a tenth of the
-MOVING_PERIOD-paced readbacks an operator would notice); RBV updates while moving
->= 4 per second (the record polls every 0.2 s while the axis moves: 5 per second
-at best). Figures, ratios and the verdicts are printed; nothing is asserted.
+Goals (**chosen**): zero-length put-to-completion p50 < 100 ms (a delay an operator
+would notice); RBV updates while moving >= 4 per second (a readback that looks live
+on a screen). The record polls every MOVING_PERIOD (0.1 s) start to start while the
+axis moves, so 10 per second at best: the second ratio printed is of that pace.
+Figures, ratios and the verdicts are printed; nothing is asserted.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from tcp_bridge.epics.readback import MOVING_PERIOD  # noqa: E402
 from tests.epics_harness import Served, ca_env  # noqa: E402
 
 GOAL_P50_MS = 100.0
@@ -70,9 +72,10 @@ def main() -> int:
         time.sleep(4.0)
         rate = (len(stamps) - start) / 4.0
         epics.caput(f"{pv}.STOP", 1, wait=True)
+        pace = 1.0 / MOVING_PERIOD
         print(f"RBV monitor updates while moving at 5 mm/s: {rate:.1f} per second; "
               f"goal >= {GOAL_RATE:g}/s: {'met' if rate >= GOAL_RATE else 'NOT met'} "
-              f"({rate / GOAL_RATE:.2f} of it)")
+              f"({rate / GOAL_RATE:.2f} of it; {rate / pace:.2f} of the {pace:g}/s poll pace)")
     finally:
         served.close()
     return 0
