@@ -8,8 +8,8 @@ import pytest
 
 from tcp_bridge.epics import fields as F
 from tcp_bridge.epics import names
-from tcp_bridge.epics.record import (Frame, Sample, alarm, live_fields, nint, too_small,
-                                     violates)
+from tcp_bridge.epics.record import (Frame, Sample, alarm, live_fields, nint, runs_away,
+                                     too_small, violates)
 from tcp_bridge.tables.axes import ConfigError
 
 
@@ -54,6 +54,20 @@ def test_no_limits_when_both_dial_limits_are_zero() -> None:
 
 def test_too_small_compares_raw_positions() -> None:
     assert too_small(1.0004, 1.0, 0.001) and not too_small(1.0006, 1.0, 0.001)
+
+
+@pytest.mark.parametrize("target, drbv, cdir, expected", [
+    (0.5, 1.5, 1, True),  # behind a positive move: stop, then go back
+    (3.0, 1.5, 1, False),  # ahead of it: the running move goes on
+    (1.5015, 1.5, 1, False),  # within NTMF x RDBD (2 x 0.001)
+    (1.497, 1.5, 1, True),  # just past it, beyond the deadband
+    (2.5, 1.5, 0, True), (0.5, 1.5, 0, False),  # the same for a negative move
+])
+def test_the_new_target_monitor_stops_only_when_the_axis_runs_away_from_the_target(
+        target: float, drbv: float, cdir: int, expected: bool) -> None:
+    # motorRecord.cc process(): sign(RDIF) != CDIR and |DIFF| > NTMF x (|BDST| + RDBD)
+    assert runs_away(target, drbv, cdir, mres=0.001, ntmf=2.0, bdst=0.0,
+                     rdbd=0.001) is expected
 
 
 def test_a_sample_makes_the_live_fields_msta_and_alarm() -> None:

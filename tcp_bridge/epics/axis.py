@@ -25,7 +25,11 @@ R6.9 to R6.96, cited by function; the arithmetic is :mod:`tcp_bridge.epics.recor
   ``postProcess()``: VAL stays the new target). A new target the axis is still
   running towards is taken when the running move ends (``process()``: "new target
   position while MIP != DONE"). DMOV stays 0 throughout and every waiting put
-  (the first one's too) completes when the final move ended.
+  (the first one's too) completes when the final move ended. One difference:
+  EPICS base holds a second put *with callback* until the first completed (dbNotify.c
+  ``processNotifyCommon()``: "Another processNotify owns the record"), so an IOC only
+  retargets on a put without callback; here both act at once (caproto runs each
+  write in its own task) and complete together.
 * **STOP** (and SPMG Stop) sends ``S00=8`` at once, drops targets not yet sent, and
   when the axis is at rest VAL = RBV (``do_work()``: "STOP means make the motor stop
   and, when it does, make the drive fields agree with the readback fields").
@@ -49,7 +53,7 @@ from . import PutRefused
 from . import fields as F
 from .readback import (IDLE_PERIOD, MIP_HOME, MIP_MOVE, MIP_RETRY, MIP_STOP, MOVING_PERIOD,
                        Readbacks, _float, max_transfers_per_second)
-from .record import Sample, nint, too_small, violates
+from .record import Sample, runs_away, too_small, violates
 
 log = logging.getLogger(__name__)
 
@@ -192,17 +196,14 @@ class AxisRecord(Readbacks):
                                "the running move, stop first")
 
     def _runs_away(self, sample: Sample) -> bool:
-        """``process()``'s new target monitor: NTM = YES, the newest target is behind
-        the running move (the sign of RDIF is not CDIR) by more than NTMF x (|BDST| +
-        RDBD)."""
-        new = self.pending
-        v = self.values
+        """``process()``'s new target monitor (:func:`~tcp_bridge.epics.record.runs_away`)
+        for the newest target not sent yet, with NTM = YES."""
+        v, new = self.values, self.pending
         if new is None or new.kind != "move" or sample.position is None \
                 or F.menu_index(F.BY_NAME["NTM"], v["NTM"]) != F.YESNO_MENU.index("YES"):
             return False
-        rdif = nint((new.dval - sample.position) / float(v["MRES"]))
-        deadband = float(v["NTMF"]) * (abs(float(v["BDST"])) + float(v["RDBD"]))
-        return int(rdif >= 0) != self.cdir and abs(new.dval - sample.position) > deadband
+        return runs_away(new.dval, sample.position, self.cdir, mres=float(v["MRES"]),
+                         ntmf=float(v["NTMF"]), bdst=float(v["BDST"]), rdbd=float(v["RDBD"]))
 
     async def _remember(self, dval: float) -> None:
         frame = self.frame

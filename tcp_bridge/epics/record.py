@@ -16,6 +16,7 @@ Everything here is what epics-modules/motor ``motorApp/MotorSrc/motorRecord.cc``
   that is already outside back towards the valid range.
 * **Too small to move** (``do_work()``, ``too_small``): the raw target equals the raw
   readback (NINT), so no move is sent; DMOV still blinks.
+* **New target monitor** (``process()``, NTM): a new target behind the running move.
 * **MSTA** bits (``motor.h``, ``msta_field``) and the alarm (``alarm_sub()``:
   CNTRL_COMM_ERR gives COMM/INVALID, SLIP_STALL or PROBLEM gives STATE/MAJOR).
 """
@@ -91,6 +92,15 @@ def violates(dval: float, ldvl: float, dhlm: float, dllm: float) -> bool:
 def too_small(dval: float, drbv: float, mres: float) -> bool:
     """No move: the raw target is the raw readback (``do_work()``, ``too_small``)."""
     return nint(dval / mres) == nint(drbv / mres)
+
+
+def runs_away(target: float, drbv: float, cdir: int, *, mres: float, ntmf: float,
+              bdst: float, rdbd: float) -> bool:
+    """The new target monitor (``process()``, NTM = YES): the axis, commanded in
+    direction ``cdir`` (1 positive), runs away from dial ``target``: the sign of RDIF
+    (target - readback, in steps) is not CDIR, by more than NTMF x (|BDST| + RDBD)."""
+    sign_rdif = 0 if nint((target - drbv) / mres) < 0 else 1
+    return sign_rdif != cdir and abs(target - drbv) > ntmf * (abs(bdst) + rdbd)
 
 
 @dataclass(frozen=True)
