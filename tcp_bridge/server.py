@@ -352,6 +352,11 @@ class BridgeServer:
             left = await cancel_and_wait(pending, 2.5, retry=1.5)
             if left:
                 log.warning("%d client connections still open after the close", len(left))
+        probing = getattr(self, "probing", None)  # set by start()
+        if probing is not None and not probing.done():
+            # A close right after start (serve's --epics or --http failing): the probe
+            # must not submit to workers the engine is closing ("worker is closed").
+            await cancel_and_wait([probing], 2.5)
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(None, self.engine.close)
         self._closed.set()
