@@ -227,6 +227,7 @@ class Engine:
 
     def close(self, wait: bool = True) -> None:
         """Finish the transfers in flight (``wait``), write the state file, close the backends."""
+        self.scheduler.close()
         for worker in self._workers.values():
             worker.close(wait=wait)
         self.params.close()

@@ -38,9 +38,8 @@ from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple, TypeVa
 
 from epos_link.cia402 import describe_statusword
 
-from ..errors import DeviceFailure
+from ..errors import DeviceFailure, NeedsBus, NodeSilent
 from .health import Silence
-from .shared_reads import NeedsBus
 
 log = logging.getLogger("tcp_bridge.bus.sdo")
 T = TypeVar("T")
@@ -67,15 +66,6 @@ OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
 
 
 SDO_TIMEOUT_ABORT: Final = 0x05040000  # CiA 301: SDO protocol timed out (a gateway's answer)
-
-
-class NodeSilent(DeviceFailure):
-    """The node did not answer at all (timeout, link failure), as opposed to an abort.
-
-    Silence is not evidence of a power cycle (tcp_bridge.motion, rule 3): a
-    write that went unanswered may or may not have arrived, which the motion
-    sequences find out by reading the drive back (rule 4).
-    """
 
 
 def object_type(index: int, subindex: int) -> Tuple[int, bool]:

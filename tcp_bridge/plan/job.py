@@ -20,6 +20,13 @@ every request resolved after it as well.
 
 A stop (S00=8, S90=0) is not gated: every axis is told to stop, whatever the
 others answer.
+
+The stages are one unit in the bus order: :class:`tcp_bridge.bus.scheduler.Scheduler`
+gives each of them its place on its bus when the request arrives
+(:mod:`tcp_bridge.bus.order`), so nothing that arrives later runs between them. A
+job names the axes its request sets moving (``moves``) and, for a stop, the axes
+it brings to rest (``stops``): a stop supersedes every earlier move of those axes
+still in flight.
 """
 from __future__ import annotations
 
@@ -87,6 +94,10 @@ class Job:
     urgent: bool = False
     after: Tuple[Ticket, ...] = ()  # earlier writes whose values this job uses
     own: Tuple[Ticket, ...] = ()  # the writes of this request that later ones may use
+    # Issue 30, finding 1 (tcp_bridge.bus.order): the axes this request sets moving, and
+    # the axes a stop (S00=8, S90=0, S04=0, S16, S17) brings to rest.
+    moves: Tuple["AxisRuntime", ...] = ()
+    stops: Tuple["AxisRuntime", ...] = ()
 
     def __call__(self) -> Any:
         if self.bus is not None and self.axis is not None and self.axis.drive is not None:
