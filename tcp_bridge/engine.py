@@ -33,7 +33,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
 from .bus.failfast import BusGuard, log_change
 from .bus.health import BusHealth, Silence
 from .bus.scheduler import Scheduler
-from .bus.sdo import SdoPort
+from .bus.sdo import SdoPort, Switch
 from .bus.shared_reads import BUSY, SHARE_WINDOW, SharedReads
 from .bus.workers import BusWorker
 from .errors import BusUnavailable, InvalidCommand
@@ -80,7 +80,7 @@ class Engine:
                  **cia402_options: Any) -> None:
         self.table = table
         self.params = params if params is not None else ParameterStore(table)
-        self.debug = table.settings.debug
+        self._debug = Switch(table.settings.debug)  # command 91: every port reads it
         self.version = software_version()
         self.backends = list(backends)
         s = table.settings
@@ -106,8 +106,7 @@ class Engine:
             port = None
             if node is not None:
                 port = SdoPort(node, name=f"axis {addr} ({axis.bus} node {axis.node_id})",
-                               debug=lambda: self.debug,
-                               observer=self.guards[axis.bus].observer(axis.node_id))
+                               debug=self._debug, health=self.guards[axis.bus].node(axis.node_id))
             self.axes[addr] = AxisRuntime(axis, self.params, port, timing, **cia402_options)
             if axis.cyclic is not None and port is not None and self.axes[addr].cyclic is None:
                 raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: cyclic: bus "
@@ -130,6 +129,15 @@ class Engine:
         self.internal = [self.axes[a.addr] for a in table.internal_axes
                          if self.axes[a.addr].port is not None]
         self.scheduler = Scheduler(self.shared, self.guards, job_timeout)
+
+    @property
+    def debug(self) -> bool:
+        """Command 91 "debug print": each transfer logged by its port."""
+        return self._debug.on
+
+    @debug.setter
+    def debug(self, on: bool) -> None:
+        self._debug.on = on
 
     @property
     def job_timeout(self) -> float:

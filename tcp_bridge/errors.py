@@ -10,6 +10,10 @@
      |    |                               node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
      |    +-- NodeSilent                  the node did not answer at all (timeout, link
      |    |                               failure), as opposed to an SDO abort (tcp_bridge.bus.sdo)
+     |    +-- OutcomeUnknown              the node went silent after a write that starts a
+     |    |                               move (tcp_bridge.motion rule 4)
+     |    +-- SafetyRefusal               the bridge refused to lower an axis's state or to
+     |    |                               reset it (tcp_bridge.motion rule 1)
      |    +-- SilentLink                  reply NAK at once: the bus's device or the node
      |    |                               is declared silent (tcp_bridge.bus.health); nothing sent
      |    +-- DependencyFailed            reply NAK, nothing sent: resolved against an earlier
@@ -21,10 +25,17 @@
      |                                    written into the 30-byte reply (spec 2.2.2)
      +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
      |                                    format of spec 2.2.2 / 2.3.2
+     +-- ConfigError (ValueError)         the axis table or the state file is not valid
+     |                                    (start-up only: one line naming it, exit 2)
      +-- BusUnavailable (OSError)         a bus's device or adapter cannot be opened now
                                           (unplugged, refused, powered off): not a mistake
                                           of the table; serve opens it again later
                                           (tcp_bridge.backends.reopen)
+
+A backend raises what its library promises (canopen's ``SdoAbortedError`` and
+``SdoCommunicationError``, e.g. the EtherCAT backend's ``SlaveUnreachable``; python-can's
+``CanError``; ``epos_link``'s ``EposError`` tree): :class:`tcp_bridge.bus.sdo.SdoPort`
+turns each into :class:`DeviceFailure` or :class:`NodeSilent` at the one seam.
 
 Not a reply, an internal signal: :class:`NeedsBus` (a read answered from PDOs on
 the event loop needs an SDO transfer after all: it is queued on its bus instead;
@@ -126,6 +137,18 @@ class Superseded(DeviceFailure):
 class NeedsBus(Exception):
     """A read planned to answer from PDOs on the event loop needs the bus after all
     (:mod:`tcp_bridge.bus.shared_reads` rule 5): queue it. Never a reply."""
+
+
+class OutcomeUnknown(DeviceFailure):
+    """The node went silent after a write that starts a move (motion rule 4)."""
+
+
+class SafetyRefusal(DeviceFailure):
+    """The bridge refused to lower the state of an axis or to reset it (motion rule 1)."""
+
+
+class ConfigError(BridgeError, ValueError):
+    """The axis table or the state file is not valid; raised at start-up only."""
 
 
 class ReplyOverflow(BridgeError, ValueError):

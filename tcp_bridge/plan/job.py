@@ -1,5 +1,4 @@
-"""A planned request (:class:`Job`), the order its parts run in (:func:`steps`), and
-the :class:`Ticket` of a write that later requests were resolved against.
+"""A planned request (:class:`Job`) and the order its parts run in (:func:`steps`).
 
 A job carries everything decided when its request was resolved: the bus, the
 closure that does the transfers (it returns the value a read answers, or None),
@@ -31,50 +30,18 @@ still in flight.
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass, field
 from typing import (TYPE_CHECKING, Any, Callable, Generator, List, Optional, Sequence, Tuple,
                     Union)
 
 from ..errors import DependencyFailed
+from .tickets import Ticket
 
 if TYPE_CHECKING:
     from ..wire import Request
     from .axis import AxisRuntime
 
 log = logging.getLogger("tcp_bridge.plan")
-
-TICKET_WAIT = 60.0  # seconds: a job waits this long at most for an earlier write on another bus
-
-
-class Ticket:
-    """One write not yet executed: later requests were resolved against its value."""
-
-    __slots__ = ("what", "_done", "failure")
-
-    def __init__(self, what: str) -> None:
-        self.what = what
-        self._done = threading.Event()
-        self.failure: Optional[str] = None
-
-    def settle(self, failure: Optional[BaseException]) -> None:
-        if self._done.is_set():
-            return  # the first outcome stands
-        self.failure = None if failure is None else str(failure) or type(failure).__name__
-        self._done.set()
-
-    @property
-    def settled(self) -> bool:
-        return self._done.is_set()
-
-    def check(self, timeout: float = TICKET_WAIT) -> None:
-        """Wait until the write ended; :class:`DependencyFailed` if it did not happen."""
-        if not self._done.wait(timeout):
-            raise DependencyFailed(f"{self.what} has not ended after {timeout:g} s")
-        if self.failure is not None:
-            raise DependencyFailed(f"not executed: it was resolved against {self.what}, "
-                                   f"which failed ({self.failure})")
-
 
 @dataclass
 class Job:

@@ -9,7 +9,8 @@ from typing import Callable, Iterator, Mapping, Optional, Sequence, Tuple
 
 from ..tables.commands import CommandKind
 from .axis import AxisRuntime
-from .job import Job, Ticket
+from .job import Job
+from .tickets import Ticket
 from .moves import MovePlan, Part, plan_combined, plan_move, plan_stop
 from .reads import READS
 from .resolve import Resolved
