@@ -52,6 +52,12 @@ class Served(AskOk):
     def ask(self, line: str) -> Reply:
         return psi_ask(self.sock, line)
 
+    def defer_replies(self) -> None:
+        """As on a real EPOS4's link (the ``epos`` backend, tcp_bridge.bus.workers "Replies
+        after the next request"): a job's result waits until the next job sends."""
+        for bus, worker in self.engine._workers.items():
+            self._backend(bus).epos.attach_wait(worker.defer_results())
+
     def close(self) -> None:
         self.sock.close()
         self.other.close()
@@ -143,10 +149,13 @@ def line() -> Iterator[Served]:
         b.close()
 
 
-@pytest.fixture
-def gantry() -> Iterator[Served]:
-    """Axis 1 (can1) is the master, axis 2 (can2) its slave (29/30): a gantry on two buses."""
+@pytest.fixture(params=["replies at once", "replies deferred"])
+def gantry(request: pytest.FixtureRequest) -> Iterator[Served]:
+    """Axis 1 (can1) is the master, axis 2 (can2) its slave (29/30): a gantry on two buses,
+    with the results of a bus's jobs handed over at once or after the next job's request."""
     b = Served(two_buses())
+    if request.param == "replies deferred":
+        b.defer_replies()
     try:
         b.ok("1S04=1", "2S04=1", "1S05=10", "1S06=100", "1S29=2", "1S30=1", "1S02=5")
         yield b
@@ -219,6 +228,17 @@ def test_a_stop_after_a_csp_line_on_can_whose_bus_is_held_is_never_overtaken_by_
         assert moved.status is Status.NAK
     finally:
         b.close()
+
+
+def test_a_gantry_on_two_buses_moves_whole(gantry: Served) -> None:
+    """The stages of one move, each in its place on its bus, with nothing in between."""
+    b = gantry
+    before = [b.starts("can1", 1), b.starts("can2", 1)]
+    b.ok("1S00=1")
+    b.poll("1R82", "1")
+    b.poll("2R82", "1")
+    assert [b.starts("can1", 1), b.starts("can2", 1)] == [before[0] + 1, before[1] + 1]
+    assert b.ok("1R12") == "5" and b.ok("2R12") == "5"
 
 
 # -- a gantry on two buses ------------------------------------------------------------------

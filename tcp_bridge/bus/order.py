@@ -17,7 +17,9 @@ The rules:
    :data:`UNUSED` when released (the plan does not need it: the companions of a
    refused move, the halts of a move that started whole). Everything that
    arrives later queues behind every slot of the request on every bus they
-   share, so nothing runs between two stages of it.
+   share, so nothing runs between two stages of it. Before it waits, a slot hands
+   over the results its bus still holds (:meth:`tcp_bridge.bus.workers.BusWorker.flush`,
+   "Replies after the next request"): the stage it waits for may need one of them.
 2. **No deadlock, no stall.** A slot waits only for an earlier stage of its own
    request. That stage's job stands in its own bus's queue behind jobs of earlier
    requests only, which by the same rule wait for nothing later. A slot waits at
@@ -81,9 +83,10 @@ class Unit:
 
     # -- the event loop ------------------------------------------------------------------
 
-    def slot(self, job: "Job") -> "Slot":
-        """A new slot for ``job``'s stage; the caller queues it on ``job.bus``."""
-        slot = self._slots[id(job)] = Slot(self, halting=job.urgent)
+    def slot(self, job: "Job", flush: Callable[[], None]) -> "Slot":
+        """A new slot for ``job``'s stage; the caller queues it on ``job.bus``, whose
+        worker's ``flush`` hands over the results it holds."""
+        slot = self._slots[id(job)] = Slot(self, flush, halting=job.urgent)
         return slot
 
     def slot_of(self, job: "Job") -> Optional["Slot"]:
@@ -132,8 +135,9 @@ class Unit:
 class Slot:
     """A stage's place in its bus's queue, reserved when its request arrived (rule 1)."""
 
-    def __init__(self, unit: Unit, *, halting: bool) -> None:
+    def __init__(self, unit: Unit, flush: Callable[[], None], *, halting: bool) -> None:
         self.unit = unit
+        self._flush = flush
         self.halting = halting  # a halt: runs even after the unit was superseded
         self._job: Optional[Callable[[], Any]] = None
         self.future: Optional["asyncio.Future[Any]"] = None  # its job's, on the bus worker
@@ -147,6 +151,10 @@ class Slot:
     def __call__(self) -> Any:
         """The bus thread, at the slot's turn: wait for the stage's job, then run it."""
         unit = self.unit
+        with unit.cond:
+            given = self._job is not None
+        if not given:
+            self._flush()  # the stage this slot waits for may wait for a result held here
         with unit.cond:
             deadline = time.monotonic() + unit.wait
             while self._job is None and not unit.ended:

@@ -119,8 +119,9 @@ class Scheduler:
         for stage in ((job,), job.companions, halts):
             for j in stage:
                 if j.bus is not None and not any(j is f for f in first):
-                    slot = unit.slot(j)
-                    slot.future = self.shared[j.bus].submit(slot)
+                    shared = self.shared[j.bus]
+                    slot = unit.slot(j, shared.worker.flush)
+                    slot.future = shared.submit(slot)
 
     def _stage(self, unit: Optional[Unit], job: Job, *, fast: bool) -> "asyncio.Future[Any]":
         """Run one stage's job: in its reserved slot if it has one, else queued now."""
