@@ -12,8 +12,11 @@ earlier requests left (:class:`~tcp_bridge.plan.axis.AxisRuntime`, including
 the values of writes not yet executed) and its values are fixed then: a later
 S02, S22 or S29 from another port cannot change a move already accepted.
 Writes and moves of one axis (and of the axes a move involves) run on their
-bus's worker in that same order. A request resolved against a write that then
-fails is not executed either (NAK; :class:`~tcp_bridge.plan.job.Ticket`).
+bus's worker in that same order, every stage of a move included: its later
+stages take their places on their buses when it arrives, and a stop supersedes
+the moves in flight it follows (:mod:`tcp_bridge.bus.order`). A request resolved
+against a write that then fails is not executed either (NAK;
+:class:`~tcp_bridge.plan.tickets.Ticket`).
 Reads may be shared or answered from PDOs, but never see a state older than
 an earlier request's ACK.
 

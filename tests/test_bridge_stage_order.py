@@ -166,7 +166,7 @@ def gantry(request: pytest.FixtureRequest) -> Iterator[Served]:
 # -- a line of internal axes (90), a stop from the other port ----------------------------------
 
 
-@pytest.mark.parametrize("stop", ["2S00=8", "1S90=0", "2S04=0"])
+@pytest.mark.parametrize("stop", ["2S00=8", "1S90=0", "2S04=0", "2S17=1"])
 def test_a_stop_sent_after_a_line_on_the_other_port_is_never_overtaken_by_it(
         line: Served, stop: str) -> None:
     b = line

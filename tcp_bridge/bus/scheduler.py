@@ -122,6 +122,9 @@ class Scheduler:
                     shared = self.shared[j.bus]
                     slot = unit.slot(j, shared.worker.flush)
                     slot.future = shared.submit(slot)
+                    # A slot whose stage never came (its plan ended before: refused,
+                    # superseded) may end in Superseded that nobody awaits.
+                    slot.future.add_done_callback(_retrieved)
 
     def _stage(self, unit: Optional[Unit], job: Job, *, fast: bool) -> "asyncio.Future[Any]":
         """Run one stage's job: in its reserved slot if it has one, else queued now."""
@@ -150,7 +153,9 @@ class Scheduler:
             for axis_job in (unit.job, *unit.job.companions):
                 halt = axis_job.stop
                 if halt is not None and halt.bus is not None:
-                    unit.halts.append(self._submit(halt, run=unit.halt_if_begun(halt)))
+                    future = self._submit(halt, run=unit.halt_if_begun(halt))
+                    future.add_done_callback(_log_superseded_halt)
+                    unit.halts.append(future)
         return units
 
     async def _settled(self, units: List[Unit], deadline: float) -> None:
@@ -161,9 +166,6 @@ class Scheduler:
         _, pending = await asyncio.wait(waits, timeout=max(deadline - loop.time(), 0.0))
         if pending:
             raise asyncio.TimeoutError("the moves this stop superseded have not ended")
-        for halt in (h for u in units for h in u.halts):
-            if halt.exception() is not None:
-                log.error("halt of a move superseded by a stop failed: %s", halt.exception())
 
     def close(self) -> None:
         """Release every stage still waiting for its turn (the engine closes)."""
@@ -223,6 +225,16 @@ class Scheduler:
         if job.bus is None:
             return run or job
         return self.guards[job.bus].guarded(run or job, _node_of(job), check=not job.urgent)
+
+
+def _retrieved(future: "asyncio.Future[Any]") -> None:
+    if not future.cancelled():
+        future.exception()  # seen: asyncio does not report it as never retrieved
+
+
+def _log_superseded_halt(future: "asyncio.Future[Any]") -> None:
+    if not future.cancelled() and future.exception() is not None:
+        log.error("halt of a move superseded by a stop failed: %s", future.exception())
 
 
 def _log_halt(future: "asyncio.Future[Any]") -> None:
