@@ -12,8 +12,11 @@ earlier requests left (:class:`~tcp_bridge.plan.axis.AxisRuntime`, including
 the values of writes not yet executed) and its values are fixed then: a later
 S02, S22 or S29 from another port cannot change a move already accepted.
 Writes and moves of one axis (and of the axes a move involves) run on their
-bus's worker in that same order. A request resolved against a write that then
-fails is not executed either (NAK; :class:`~tcp_bridge.plan.job.Ticket`).
+bus's worker in that same order, every stage of a move included: its later
+stages take their places on their buses when it arrives, and a stop supersedes
+the moves in flight it follows (:mod:`tcp_bridge.bus.order`). A request resolved
+against a write that then fails is not executed either (NAK;
+:class:`~tcp_bridge.plan.tickets.Ticket`).
 Reads may be shared or answered from PDOs, but never see a state older than
 an earlier request's ACK.
 
@@ -33,7 +36,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
 from .bus.failfast import BusGuard, log_change
 from .bus.health import BusHealth, Silence
 from .bus.scheduler import Scheduler
-from .bus.sdo import SdoPort
+from .bus.sdo import SdoPort, Switch
 from .bus.shared_reads import BUSY, SHARE_WINDOW, SharedReads
 from .bus.workers import BusWorker
 from .errors import BusUnavailable, InvalidCommand
@@ -80,7 +83,7 @@ class Engine:
                  **cia402_options: Any) -> None:
         self.table = table
         self.params = params if params is not None else ParameterStore(table)
-        self.debug = table.settings.debug
+        self._debug = Switch(table.settings.debug)  # command 91: every port reads it
         self.version = software_version()
         self.backends = list(backends)
         s = table.settings
@@ -106,8 +109,7 @@ class Engine:
             port = None
             if node is not None:
                 port = SdoPort(node, name=f"axis {addr} ({axis.bus} node {axis.node_id})",
-                               debug=lambda: self.debug,
-                               observer=self.guards[axis.bus].observer(axis.node_id))
+                               debug=self._debug, health=self.guards[axis.bus].node(axis.node_id))
             self.axes[addr] = AxisRuntime(axis, self.params, port, timing, **cia402_options)
             if axis.cyclic is not None and port is not None and self.axes[addr].cyclic is None:
                 raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: cyclic: bus "
@@ -130,6 +132,15 @@ class Engine:
         self.internal = [self.axes[a.addr] for a in table.internal_axes
                          if self.axes[a.addr].port is not None]
         self.scheduler = Scheduler(self.shared, self.guards, job_timeout)
+
+    @property
+    def debug(self) -> bool:
+        """Command 91 "debug print": each transfer logged by its port."""
+        return self._debug.on
+
+    @debug.setter
+    def debug(self, on: bool) -> None:
+        self._debug.on = on
 
     @property
     def job_timeout(self) -> float:
@@ -227,6 +238,7 @@ class Engine:
 
     def close(self, wait: bool = True) -> None:
         """Finish the transfers in flight (``wait``), write the state file, close the backends."""
+        self.scheduler.close()
         for worker in self._workers.values():
             worker.close(wait=wait)
         self.params.close()

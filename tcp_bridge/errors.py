@@ -8,18 +8,38 @@
      |    +-- LineTooLong                 a request line above the splitter's limit
      +-- DeviceFailure                    reply NAK: the device transfer failed or the
      |    |                               node is absent (spec 2.2.2 / 2.3.2, "SDO ACK/NAK")
+     |    +-- NodeSilent                  the node did not answer at all (timeout, link
+     |    |                               failure), as opposed to an SDO abort (tcp_bridge.bus.sdo)
+     |    +-- OutcomeUnknown              the node went silent after a write that starts a
+     |    |                               move (tcp_bridge.motion rule 4)
+     |    +-- SafetyRefusal               the bridge refused to lower an axis's state or to
+     |    |                               reset it (tcp_bridge.motion rule 1)
      |    +-- SilentLink                  reply NAK at once: the bus's device or the node
      |    |                               is declared silent (tcp_bridge.bus.health); nothing sent
      |    +-- DependencyFailed            reply NAK, nothing sent: resolved against an earlier
-     |                                    write that was not executed (tcp_bridge.plan.job)
+     |    |                               write that was not executed (tcp_bridge.plan.job)
+     |    +-- Superseded                  reply NAK: a stop of one of its axes arrived before
+     |                                    this move's stages all began; those not begun never
+     |                                    do, the begun ones are halted (tcp_bridge.bus.order)
      +-- ReplyOverflow (ValueError)       reply NAK: a value read from the device cannot be
      |                                    written into the 30-byte reply (spec 2.2.2)
      +-- MalformedReply (ValueError)      client side: a reply that is not the 30-byte
      |                                    format of spec 2.2.2 / 2.3.2
+     +-- ConfigError (ValueError)         the axis table or the state file is not valid
+     |                                    (start-up only: one line naming it, exit 2)
      +-- BusUnavailable (OSError)         a bus's device or adapter cannot be opened now
                                           (unplugged, refused, powered off): not a mistake
                                           of the table; serve opens it again later
                                           (tcp_bridge.backends.reopen)
+
+A backend raises what its library promises (canopen's ``SdoAbortedError`` and
+``SdoCommunicationError``, e.g. the EtherCAT backend's ``SlaveUnreachable``; python-can's
+``CanError``; ``epos_link``'s ``EposError`` tree): :class:`tcp_bridge.bus.sdo.SdoPort`
+turns each into :class:`DeviceFailure` or :class:`NodeSilent` at the one seam.
+
+Not a reply, an internal signal: :class:`NeedsBus` (a read answered from PDOs on
+the event loop needs an SDO transfer after all: it is queued on its bus instead;
+:mod:`tcp_bridge.bus.shared_reads` rule 5).
 
 The spec (PSI TCP-IP to CANopen gateway, rev 2.3, 2.2.2) has three answers:
 ACK (executed), NAK (not executed; the drive did not answer) and CAN (the
@@ -97,6 +117,38 @@ class DeviceFailure(BridgeError):
 class SilentLink(DeviceFailure):
     """Refused without a transfer: the bus's device, or the node, was declared silent
     and no probe has heard it since (:mod:`tcp_bridge.bus.health`, fail-fast buses)."""
+
+
+class NodeSilent(DeviceFailure):
+    """The node did not answer at all (timeout, link failure), as opposed to an abort.
+
+    Silence is not evidence of a power cycle (tcp_bridge.motion, rule 3): a
+    write that went unanswered may or may not have arrived, which the motion
+    sequences find out by reading the drive back (rule 4).
+    """
+
+
+class Superseded(DeviceFailure):
+    """A stop (S00=8, S90=0, S04=0, S16, S17) of one of this move's axes arrived after it,
+    before every stage of the move began: the stages not begun never begin, the begun
+    ones are halted (:mod:`tcp_bridge.bus.order`). Answered NAK: not executed whole."""
+
+
+class NeedsBus(Exception):
+    """A read planned to answer from PDOs on the event loop needs the bus after all
+    (:mod:`tcp_bridge.bus.shared_reads` rule 5): queue it. Never a reply."""
+
+
+class OutcomeUnknown(DeviceFailure):
+    """The node went silent after a write that starts a move (motion rule 4)."""
+
+
+class SafetyRefusal(DeviceFailure):
+    """The bridge refused to lower the state of an axis or to reset it (motion rule 1)."""
+
+
+class ConfigError(BridgeError, ValueError):
+    """The axis table or the state file is not valid; raised at start-up only."""
 
 
 class ReplyOverflow(BridgeError, ValueError):

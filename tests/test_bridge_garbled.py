@@ -122,7 +122,9 @@ class ScriptedSdo:
 
 def port_of(sdo: ScriptedSdo, outcomes: List[Optional[Silence]]) -> SdoPort:
     node = types.SimpleNamespace(sdo=sdo)
-    return SdoPort(node, observer=lambda silence, why: outcomes.append(silence))
+    # The port records each transfer's outcome in its node's health (bus.health.NodeHealth).
+    health = types.SimpleNamespace(record=lambda silence, why="": outcomes.append(silence))
+    return SdoPort(node, health=health)  # type: ignore[arg-type]
 
 
 def test_a_garbled_answer_is_tried_again_and_the_answer_counts() -> None:

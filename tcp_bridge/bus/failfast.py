@@ -2,7 +2,8 @@
 
 :class:`tcp_bridge.bus.health.BusHealth` holds the policy (pure, documented
 there); this module connects it to the I/O: :class:`BusGuard` gives each
-axis's :class:`~tcp_bridge.bus.sdo.SdoPort` an observer that records every
+axis's :class:`~tcp_bridge.bus.sdo.SdoPort` its node's
+:class:`~tcp_bridge.bus.health.NodeHealth`, in which the port records every
 transfer's outcome, answers :meth:`BusGuard.refusal` for the engine before a
 job is queued and again when its turn comes (so nothing queued during an
 outage reaches the device), and runs the due probes on the bus's worker
@@ -25,7 +26,7 @@ import logging
 from typing import Any, Callable, Mapping, Optional
 
 from ..errors import SilentLink
-from .health import BusHealth, Change, Silence, Target
+from .health import BusHealth, Change, NodeHealth, Silence, Target
 from .sdo import _is_device_error, retry_garbled, silence_of
 
 log = logging.getLogger(__name__)
@@ -59,11 +60,9 @@ class BusGuard:
         self.nodes = dict(nodes)  # node id -> node (canopen SDO interface)
         self._link_probe = link_probe
 
-    def observer(self, node_id: int) -> Callable[[Optional[Silence], str], None]:
-        """For the SdoPort of ``node_id``: records each transfer's outcome."""
-        def observe(silence: Optional[Silence], why: str) -> None:
-            self.health.record(node_id, silence, why)
-        return observe
+    def node(self, node_id: int) -> NodeHealth:
+        """For the SdoPort (and the axis) of ``node_id``: its node's health."""
+        return NodeHealth(self.health, node_id)
 
     def refusal(self, node_id: Optional[int]) -> Optional[SilentLink]:
         reason = self.health.refusal(node_id)  # names its link: "bus can1: device silent ..."

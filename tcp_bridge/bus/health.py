@@ -55,6 +55,10 @@ statusword read after the outage decides.
 Threads: every record and probe happens on the bus's worker thread (one
 writer); the event loop only calls :meth:`BusHealth.refusal`, which reads
 attributes each replaced whole.
+
+One node's view (:class:`NodeHealth`) is what its axis holds
+(``AxisRuntime.health``) and what its :class:`~tcp_bridge.bus.sdo.SdoPort` tells
+the outcome of each transfer: the health of an axis is reachable from the axis.
 """
 from __future__ import annotations
 
@@ -236,3 +240,26 @@ class BusHealth:
         link.silent_since = None
         self.on_change(Change(link.name, False, duration=max(self.clock() - since, 0.0),
                               device=link is self._device))
+
+
+class NodeHealth:
+    """One node of a bus: its transfers' outcomes, and whether it is refused now."""
+
+    __slots__ = ("bus", "node_id")
+
+    def __init__(self, bus: BusHealth, node_id: int) -> None:
+        self.bus = bus
+        self.node_id = node_id
+
+    def record(self, silence: Optional[Silence], why: str = "") -> None:
+        """The outcome of a transfer to this node (:meth:`BusHealth.record`)."""
+        self.bus.record(self.node_id, silence, why)
+
+    def refusal(self) -> Optional[str]:
+        """Why a request for this node is answered NAK at once now, or None."""
+        return self.bus.refusal(self.node_id)
+
+    @property
+    def silent(self) -> bool:
+        """The bus's device or this node is declared silent."""
+        return self.bus.silent or self.bus.node_silent(self.node_id)

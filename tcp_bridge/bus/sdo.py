@@ -11,9 +11,14 @@ The command layer never sees a backend: it gets a *node*, an object with
 :class:`SdoPort` adds the data types of the CiA 301 / CiA 402 objects the
 gateway uses (so a U16 controlword goes out as 2 bytes and a statusword comes
 back unsigned), turns every failure into :class:`~tcp_bridge.errors.DeviceFailure`
-(answered NAK), and logs each transfer when command 91 "debug print" is on. It
-tells its observer the outcome of every transfer, and :func:`silence_of` tells a
-silent bus's device from a silent node (fail-fast buses, :mod:`tcp_bridge.bus.health`).
+(answered NAK), and logs each transfer when command 91 "debug print" is on (a
+:class:`Switch` it reads, never a call back up). It records the outcome of every
+transfer in its node's :class:`~tcp_bridge.bus.health.NodeHealth` (fail-fast
+buses; :func:`silence_of` tells a silent bus's device from a silent node), and
+keeps the last value it wrote to each object (:attr:`SdoPort.written`: what a
+drive that kept its RAM values still holds, motion rule 3). The port calls
+nothing above it: whoever reads the statusword hands it to the drive's
+sequences itself (:meth:`tcp_bridge.motion.Cia402.observe`).
 
 A garbled answer is not silence (issue 24): a CRC error, a frame cut short, or
 bytes that never made an answer (:func:`garbled`) prove the device is there and
@@ -38,9 +43,9 @@ from typing import Any, Callable, Dict, Final, NoReturn, Optional, Tuple, TypeVa
 
 from epos_link.cia402 import describe_statusword
 
-from ..errors import DeviceFailure
-from .health import Silence
-from .shared_reads import NeedsBus
+from ..errors import DeviceFailure, NeedsBus, NodeSilent
+from ..tables.commands import ObjectRef
+from .health import NodeHealth, Silence
 
 log = logging.getLogger("tcp_bridge.bus.sdo")
 T = TypeVar("T")
@@ -67,15 +72,6 @@ OBJECT_TYPES: Final[Dict[Tuple[int, Optional[int]], Tuple[int, bool]]] = {
 
 
 SDO_TIMEOUT_ABORT: Final = 0x05040000  # CiA 301: SDO protocol timed out (a gateway's answer)
-
-
-class NodeSilent(DeviceFailure):
-    """The node did not answer at all (timeout, link failure), as opposed to an abort.
-
-    Silence is not evidence of a power cycle (tcp_bridge.motion, rule 3): a
-    write that went unanswered may or may not have arrived, which the motion
-    sequences find out by reading the drive back (rule 4).
-    """
 
 
 def object_type(index: int, subindex: int) -> Tuple[int, bool]:
@@ -183,28 +179,33 @@ def _is_device_error(exc: BaseException) -> bool:
     return bool(names & {"SdoError", "CanError", "EposError", "NmtError"})
 
 
+class Switch:
+    """A flag read without a call: command 91 "debug print", set by the engine and read by
+    every port before it logs a transfer."""
+
+    __slots__ = ("on",)
+
+    def __init__(self, on: bool = False) -> None:
+        self.on = on
+
+
 class SdoPort:
     """Integer reads and writes of one node's objects; failures become DeviceFailure."""
 
-    def __init__(self, node: Any, *, name: str = "node",
-                 debug: Callable[[], bool] = lambda: False,
-                 observer: Optional[Callable[[Optional[Silence], str], None]] = None) -> None:
+    def __init__(self, node: Any, *, name: str = "node", debug: Optional[Switch] = None,
+                 health: Optional[NodeHealth] = None) -> None:
         self.node = node
         self.name = name
-        self._debug = debug
+        self._debug = debug if debug is not None else Switch()
         # Told the outcome of every transfer (tcp_bridge.bus.health: fail-fast buses).
-        self._observer = observer or (lambda silence, why: None)
-        self._watchers: Dict[Tuple[int, int], Callable[[int], None]] = {}
+        self.health = health
+        # The last value written through this port to each object (any command, 81
+        # included): what a drive that kept its RAM values still holds (motion rule 3).
+        self.written: Dict[ObjectRef, int] = {}
         # PDO-fed status (canopen backend, pdo = true; tcp_bridge.backends.pdo_status):
         # told the end of every transfer, consulted by read_status().
         self.feed: Any = getattr(node, "status_feed", None)
         self._pdo_only = False  # within pdo_only(): no SDO transfer at all
-        self.on_write: Optional[Callable[[int, int, int], None]] = None  # (index, sub, value)
-
-    def watch(self, index: int, watcher: Callable[[int], None], subindex: int = 0) -> None:
-        """Call ``watcher(value)`` with every value of the object read through this port
-        (the statusword: :class:`tcp_bridge.motion.Cia402` sees every poll)."""
-        self._watchers[(index, subindex)] = watcher
 
     def upload(self, index: int, subindex: int) -> bytes:
         if self._pdo_only:
@@ -217,8 +218,10 @@ class SdoPort:
             self._trace("upload", index, subindex, None, exc)
             self._raise_failure("read", index, subindex, exc)
         self._transferred((index, subindex))
-        self._observer(None, "")
-        self._trace("upload", index, subindex, data, None)
+        if self.health is not None:
+            self.health.record(None)
+        if self._debug.on:
+            self._trace("upload", index, subindex, data, None)
         return data
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
@@ -232,8 +235,10 @@ class SdoPort:
             self._trace("download", index, subindex, data, exc)
             self._raise_failure("write", index, subindex, exc)
         self._transferred(None)
-        self._observer(None, "")
-        self._trace("download", index, subindex, data, None)
+        if self.health is not None:
+            self.health.record(None)
+        if self._debug.on:
+            self._trace("download", index, subindex, data, None)
 
     def _transferred(self, key: Optional[Tuple[int, int]]) -> None:
         if self.feed is not None:
@@ -250,29 +255,22 @@ class SdoPort:
 
     def read_status(self, index: int, subindex: int = 0) -> int:
         """A read for a status poll (R10 R12 R14 R82 R83 R84): the newest PDO value if
-        it counts (:meth:`StatusFeed.value`), else :meth:`read` by SDO. Its watcher
-        sees it either way. Sequences that wait for the drive use :meth:`read`."""
+        it counts (:meth:`StatusFeed.value`), else :meth:`read` by SDO. Sequences that
+        wait for the drive use :meth:`read`."""
         value = self.feed.value(index, subindex) if self.feed is not None else None
         if value is None:
             return self.read(index, subindex)
-        if self._debug():
+        if self._debug.on:
             note = f" [{describe_statusword(value)}]" if (index, subindex) == (0x6041, 0) else ""
             log.info("%s PDO 0x%04X/%d%s = %d%s", self.name, index, subindex,
                      object_name(self.node, index, subindex), value, note)
-        watcher = self._watchers.get((index, subindex))
-        if watcher is not None:
-            watcher(value)
         return value
 
     def read(self, index: int, subindex: int = 0, *, size: Optional[int] = None,
              signed: Optional[bool] = None) -> int:
         t_size, t_signed = object_type(index, subindex)
-        value = decode(self.upload(index, subindex), size or t_size,
-                       t_signed if signed is None else signed)
-        watcher = self._watchers.get((index, subindex))
-        if watcher is not None:
-            watcher(value)
-        return value
+        return decode(self.upload(index, subindex), size or t_size,
+                      t_signed if signed is None else signed)
 
     def write(self, index: int, subindex: int, value: int, *, size: Optional[int] = None,
               signed: Optional[bool] = None) -> None:
@@ -287,8 +285,7 @@ class SdoPort:
             raise DeviceFailure(f"{self.name}: {value} does not fit 0x{index:04X}/{subindex} "
                                 f"({size} bytes, {'signed' if signed else 'unsigned'})") from None
         self.download(index, subindex, data)
-        if self.on_write is not None:
-            self.on_write(index, subindex, decode(data, size, signed))
+        self.written[ObjectRef(index, subindex)] = decode(data, size, signed)
 
     def nmt_reset(self) -> None:
         """NMT "reset node" (CiA 301 7.2.8.3.2.1), unconfirmed by definition."""
@@ -313,7 +310,7 @@ class SdoPort:
             if not _is_device_error(exc) and not isinstance(exc, (ValueError, AttributeError)):
                 raise
             raise DeviceFailure(f"{self.name}: NMT {what} failed: {exc}") from exc
-        if self._debug():
+        if self._debug.on:
             log.info("%s NMT %s", self.name, what)
 
     def _raise_failure(self, what: str, index: int, subindex: int, exc: Exception) -> NoReturn:
@@ -321,14 +318,15 @@ class SdoPort:
             raise exc  # a bug, not a device answer, surfaces as is (still answered NAK)
         code = getattr(exc, "code", None)
         text = f"{self.name}: {what} 0x{index:04X}/{subindex} failed: {exc}"
-        self._observer(silence_of(exc), str(exc))
+        if self.health is not None:
+            self.health.record(silence_of(exc), str(exc))
         if not isinstance(code, int) or code == SDO_TIMEOUT_ABORT:
             raise NodeSilent(text, code if isinstance(code, int) else None) from exc
         raise DeviceFailure(text, code) from exc
 
     def _trace(self, what: str, index: int, subindex: int, data: Optional[bytes],
                exc: Optional[BaseException]) -> None:
-        if not self._debug():
+        if not self._debug.on:
             return
         shown = "" if data is None else " " + data.hex(" ")
         if data is not None and index == 0x6041 and subindex == 0 and len(data) >= 2:

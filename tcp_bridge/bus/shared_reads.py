@@ -49,14 +49,12 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, Callable, Dict, Final, Hashable, List, Optional, Protocol
 
+from ..errors import NeedsBus
+
 SHARE_WINDOW: Final = 0.002  # seconds a group may wait for the requests it expects (rule 4)
 
 
 BUSY: Final = object()  # SharedReads.answer_now(): not answered, submit the read
-
-
-class NeedsBus(Exception):
-    """A fast plan cannot answer without the bus (rule 5): queue the read instead."""
 
 
 class Worker(Protocol):

@@ -68,8 +68,9 @@ class Restore(Protocol):
 class Cia402(MoveStarts, Lowering, Recovery):
     """The sequences of one drive, through its :class:`~tcp_bridge.bus.sdo.SdoPort`.
 
-    It watches every statusword the port reads (polls of R10, R04, R82 too), so
-    a drive that falls back to SWITCH ON DISABLED is noticed whoever read it.
+    It looks at every statusword it reads, and at those its callers read and hand it
+    (:meth:`observe`: polls of R10, R82, R83, R84 too), so a drive that falls back
+    to SWITCH ON DISABLED is noticed whoever read it.
     ``listeners`` are called with ``"suspect"`` (the drive may have lost its
     RAM values: read units again) and ``"reset"`` (it has: forget what was
     written to it). ``coasting`` tells whether the axis still moves while
@@ -95,11 +96,12 @@ class Cia402(MoveStarts, Lowering, Recovery):
         self.supervision: Optional[Supervision] = None
         # Internal axis in CSP (tcp_bridge.plan.cyclic_moves): its own way to come to rest.
         self.rest: Optional[Callable[[Deadline], None]] = None
-        watch = getattr(port, "watch", None)
-        if watch is not None:
-            watch(STATUSWORD, self._observe)
 
     # -- observation (rule 3) -----------------------------------------------------
+
+    def observe(self, statusword: int) -> None:
+        """A statusword someone else read from this drive (a client's status poll)."""
+        self._observe(statusword)
 
     def _observe(self, statusword: int) -> None:
         state = state_from_statusword(statusword)
@@ -139,8 +141,7 @@ class Cia402(MoveStarts, Lowering, Recovery):
 
     def statusword(self) -> int:
         sw = self.port.read(STATUSWORD, 0)
-        if getattr(self.port, "watch", None) is None:
-            self._observe(sw)
+        self._observe(sw)
         return sw
 
     def state(self) -> State:

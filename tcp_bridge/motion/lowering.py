@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Final, Optional
 from epos_link.cia402 import State
 
 from ..cia402_words import Cw, Deadline, Sw
-from ..errors import DeviceFailure
+from ..errors import DeviceFailure, SafetyRefusal
 from ..bus.sdo import NodeSilent
 from .nmt_stopped import answering
 
@@ -47,10 +47,6 @@ class Why(Enum):
 
 
 CLIENT_REQUESTS: Final = frozenset({Why.CLIENT_DISABLE, Why.CLIENT_RESET_NODE})
-
-
-class SafetyRefusal(DeviceFailure):
-    """The bridge refused to lower the state of an axis or to reset it (rule 1)."""
 
 
 class Lowering:

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Callable, Final, List, Sequence, Tuple, TypeVa
 
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, TARGET_POSITION, TARGET_VELOCITY, Cw,
                             Deadline, Mode, Sw)
-from ..errors import DeviceFailure
+from ..errors import DeviceFailure, OutcomeUnknown
 from ..bus.sdo import NodeSilent
 
 if TYPE_CHECKING:
@@ -50,10 +50,6 @@ T = TypeVar("T")
 POSITION_DEMAND: Final = 0x6062  # CiA 402-2 6.7: the trajectory generator's output
 POSITION_ACTUAL: Final = 0x6064
 SOFTWARE_POSITION_LIMIT: Final = 0x607D  # sub 1 min, sub 2 max (CiA 402-2 6.5.2)
-
-
-class OutcomeUnknown(DeviceFailure):
-    """The node went silent after a write that starts a move (rule 4)."""
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Dict, Final, Optional, Tuple
 
+from ..bus.health import NodeHealth
 from ..bus.sdo import NodeSilent, SdoPort
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import Cia402, Timing
@@ -27,7 +28,7 @@ from ..tables.axes import AxisConfig, DeviceCode, from_stored, parameter_spec
 from ..tables.commands import COMMANDS, ObjectRef, Quantity
 from ..tables.parameters import ParameterStore
 from ..tables.units import DriveUnits, Number, Scaling, velocity_exponent
-from .job import Ticket
+from .tickets import Ticket
 
 log = logging.getLogger("tcp_bridge.plan")
 
@@ -71,11 +72,7 @@ class AxisRuntime:
         # values to put back before it moves on its own (tcp_bridge.plan.moves).
         self.borrowed_profile: Dict[ObjectRef, int] = {}
         self.compare_parameters = True  # motion.Restore.ignore_differences
-        # The last value the bridge wrote to each object of this drive (any command,
-        # 81 included): what a drive that kept its RAM values still holds (rule 3).
-        self.written: Dict[ObjectRef, int] = {}
         if port is not None and self.drive is not None:
-            port.on_write = lambda i, sub, value: self.written.__setitem__(ObjectRef(i, sub), value)
             self.drive.listeners.append(self._on_drive_event)
             self.drive.coasting = self._coasting
             # canopen backend with heartbeat_ms: the drive's heartbeat consumer (issue 23).
@@ -104,6 +101,19 @@ class AxisRuntime:
         if self.device is DeviceCode.C_DC_MAXON_EPOS4 and self.velocity_exponent is not None:
             return abs(raw) > 10 ** -self.velocity_exponent
         return raw != 0
+
+    @property
+    def written(self) -> Dict[ObjectRef, int]:
+        """The last value the bridge wrote to each object of this drive (any command, 81
+        included), kept by the port that wrote it: what a drive that kept its RAM
+        values still holds (motion rule 3)."""
+        return self.port.written if self.port is not None else {}
+
+    @property
+    def health(self) -> Optional[NodeHealth]:
+        """This axis's node on its bus (fail-fast buses, :mod:`tcp_bridge.bus.health`):
+        whether it is declared silent, why a request is refused now."""
+        return self.port.health if self.port is not None else None
 
     # -- the state later requests see (arrival order) ------------------------------
 

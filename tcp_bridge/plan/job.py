@@ -1,5 +1,4 @@
-"""A planned request (:class:`Job`), the order its parts run in (:func:`steps`), and
-the :class:`Ticket` of a write that later requests were resolved against.
+"""A planned request (:class:`Job`) and the order its parts run in (:func:`steps`).
 
 A job carries everything decided when its request was resolved: the bus, the
 closure that does the transfers (it returns the value a read answers, or None),
@@ -20,54 +19,29 @@ every request resolved after it as well.
 
 A stop (S00=8, S90=0) is not gated: every axis is told to stop, whatever the
 others answer.
+
+The stages are one unit in the bus order: :class:`tcp_bridge.bus.scheduler.Scheduler`
+gives each of them its place on its bus when the request arrives
+(:mod:`tcp_bridge.bus.order`), so nothing that arrives later runs between them. A
+job names the axes its request sets moving (``moves``) and, for a stop, the axes
+it brings to rest (``stops``): a stop supersedes every earlier move of those axes
+still in flight.
 """
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass, field
 from typing import (TYPE_CHECKING, Any, Callable, Generator, List, Optional, Sequence, Tuple,
                     Union)
 
 from ..errors import DependencyFailed
+from .tickets import Ticket
 
 if TYPE_CHECKING:
     from ..wire import Request
     from .axis import AxisRuntime
 
 log = logging.getLogger("tcp_bridge.plan")
-
-TICKET_WAIT = 60.0  # seconds: a job waits this long at most for an earlier write on another bus
-
-
-class Ticket:
-    """One write not yet executed: later requests were resolved against its value."""
-
-    __slots__ = ("what", "_done", "failure")
-
-    def __init__(self, what: str) -> None:
-        self.what = what
-        self._done = threading.Event()
-        self.failure: Optional[str] = None
-
-    def settle(self, failure: Optional[BaseException]) -> None:
-        if self._done.is_set():
-            return  # the first outcome stands
-        self.failure = None if failure is None else str(failure) or type(failure).__name__
-        self._done.set()
-
-    @property
-    def settled(self) -> bool:
-        return self._done.is_set()
-
-    def check(self, timeout: float = TICKET_WAIT) -> None:
-        """Wait until the write ended; :class:`DependencyFailed` if it did not happen."""
-        if not self._done.wait(timeout):
-            raise DependencyFailed(f"{self.what} has not ended after {timeout:g} s")
-        if self.failure is not None:
-            raise DependencyFailed(f"not executed: it was resolved against {self.what}, "
-                                   f"which failed ({self.failure})")
-
 
 @dataclass
 class Job:
@@ -87,6 +61,10 @@ class Job:
     urgent: bool = False
     after: Tuple[Ticket, ...] = ()  # earlier writes whose values this job uses
     own: Tuple[Ticket, ...] = ()  # the writes of this request that later ones may use
+    # Issue 30, finding 1 (tcp_bridge.bus.order): the axes this request sets moving, and
+    # the axes a stop (S00=8, S90=0, S04=0, S16, S17) brings to rest.
+    moves: Tuple["AxisRuntime", ...] = ()
+    stops: Tuple["AxisRuntime", ...] = ()
 
     def __call__(self) -> Any:
         if self.bus is not None and self.axis is not None and self.axis.drive is not None:

@@ -9,7 +9,8 @@ from typing import Callable, Iterator, Mapping, Optional, Sequence, Tuple
 
 from ..tables.commands import CommandKind
 from .axis import AxisRuntime
-from .job import Job, Ticket
+from .job import Job
+from .tickets import Ticket
 from .moves import MovePlan, Part, plan_combined, plan_move, plan_stop
 from .reads import READS
 from .resolve import Resolved
@@ -17,6 +18,10 @@ from .writes import WRITES
 
 # Rows that need the drive although the table gives no SDO object (16: NMT).
 _DRIVE_RULES = frozenset({"reset_node"})
+# Issue 30: a stop is the last word for every move that arrived before it. These rows
+# (with these values; None: any) bring their axis to rest and supersede its earlier moves.
+_STOPS: Mapping[str, Optional[int]] = {"move": 8, "combined_move": 0, "inhibit": 0,
+                                       "reset_node": None, "fault_reset": None}
 
 
 def needs_bus(axis: AxisRuntime, r: Resolved) -> bool:
@@ -40,12 +45,14 @@ def plan(r: Resolved, axes: Mapping[int, AxisRuntime],
         return Job(r.request, run, bus=bus, axis=axis, share=share,
                    after=_read_after(axis, r))
     after = axis.tickets()  # before this request's own promise
+    stops = _stopped(r, axis, internal)
     move = _move_plan(r, axes, internal)
     if move is None:
         write: Callable[[], object] = WRITES[r.rule](r)
         own = tuple(t for t in axis.tickets() if t not in after)  # promised by this request
         return Job(r.request, write, bus=bus, axis=axis, after=after, own=own,
-                   urgent=r.rule == "reset_node")  # a client's S16 is never refused unsent
+                   urgent=r.rule == "reset_node",  # a client's S16 is never refused unsent
+                   stops=stops)
     companions = tuple(_part_job(r, p, move.stopping) for p in move.companions)
     for p in move.companions:
         after += p.axis.tickets()
@@ -54,8 +61,26 @@ def plan(r: Resolved, axes: Mapping[int, AxisRuntime],
                          axis=p.axis) for p in move.companions) if gated else ()
     stop = Job(r.request, move.halt, bus=axis.config.bus, axis=axis, urgent=True) \
         if move.halt is not None else None
+    moves: Tuple[AxisRuntime, ...] = ()
+    if not move.stopping:
+        moved = (*internal, *(p.axis for p in move.companions)) \
+            if r.rule == "combined_move" else \
+            (axis, *(f.axis for f in axis.followers), *(p.axis for p in move.companions))
+        moves = tuple(dict.fromkeys(moved))  # each once, in order
     return Job(r.request, move.run, bus=bus, axis=axis, companions=companions, gated=gated,
-               precheck=precheck, stop=stop, urgent=move.stopping, after=after)
+               precheck=precheck, stop=stop, urgent=move.stopping, after=after,
+               moves=moves, stops=stops)
+
+
+def _stopped(r: Resolved, axis: AxisRuntime,
+             internal: Sequence[AxisRuntime]) -> Tuple[AxisRuntime, ...]:
+    """The axes a stop brings to rest (taken before planning it forgets the followers):
+    its axis and the followers its last move started; S90=0 every internal axis."""
+    if r.rule not in _STOPS or _STOPS[r.rule] not in (None, r.value):
+        return ()
+    if r.rule == "combined_move":
+        return tuple(internal)
+    return (axis, *(f.axis for f in axis.followers))
 
 
 def _move_plan(r: Resolved, axes: Mapping[int, AxisRuntime],

@@ -36,6 +36,7 @@ from ..errors import DeviceFailure
 from ..motion import State
 from ..tables.axes import DeviceCode
 from ..tables.commands import SdoSelector
+from .axis import AxisRuntime
 from .resolve import Resolved
 
 Value = Union[int, float, str]
@@ -124,12 +125,25 @@ def _sdo_selector(r: Resolved) -> ReadPlan:
     return lambda: text
 
 
+def _statusword(axis: AxisRuntime) -> Callable[[], int]:
+    """The statusword for a status poll (from a PDO when the bus has them), handed to the
+    drive's sequences too: a drive that fell back is noticed whoever read it (rule 3)."""
+    port, drive = axis.need_port(), axis.drive
+
+    def read() -> int:
+        sw = port.read_status(STATUSWORD, 0)
+        if drive is not None:
+            drive.observe(sw)
+        return sw
+    return read
+
+
 def _object(r: Resolved) -> ReadPlan:
     """A raw object (09 15 50 52 61); 10 from a PDO when the bus has them."""
     assert r.axis is not None and r.spec.obj is not None
     port, obj = r.axis.need_port(), r.spec.obj
     if r.spec.number == 10:  # tcp_bridge.backends.pdo_status
-        return lambda: port.read_status(obj.index, obj.subindex)
+        return _statusword(r.axis)
     return lambda: port.read(obj.index, obj.subindex)
 
 
@@ -199,8 +213,15 @@ def _sdo_access(r: Resolved) -> ReadPlan:
     selector = SdoSelector.from_value(r.axis.value(80) or 0)
     size, signed = object_type(selector.index, selector.subindex)
     signed = signed and size == selector.length
-    return lambda: port.read(selector.index, selector.subindex, size=selector.length,
-                             signed=signed)
+    drive = r.axis.drive if (selector.index, selector.subindex) == (STATUSWORD, 0) else None
+
+    def read() -> int:
+        value = port.read(selector.index, selector.subindex, size=selector.length,
+                          signed=signed)
+        if drive is not None and selector.length >= 2:
+            drive.observe(value & 0xFFFF)
+        return value
+    return read
 
 
 def _end_switch(r: Resolved) -> ReadPlan:
@@ -211,8 +232,8 @@ def _end_switch(r: Resolved) -> ReadPlan:
 
 def _status_bit(r: Resolved) -> ReadPlan:
     assert r.axis is not None and r.spec.bit is not None
-    port, bit = r.axis.need_port(), r.spec.bit
-    return lambda: (port.read_status(STATUSWORD, 0) >> bit) & 1
+    statusword, bit = _statusword(r.axis), r.spec.bit
+    return lambda: (statusword() >> bit) & 1
 
 
 def _target_reached(r: Resolved) -> ReadPlan:
@@ -220,10 +241,10 @@ def _target_reached(r: Resolved) -> ReadPlan:
     if r.axis.cyclic is not None:  # the bridge's own profile (issue 26)
         from .cyclic_moves import cyclic_target_reached
         return cyclic_target_reached(r.axis)
-    port = r.axis.need_port()
+    port, statusword = r.axis.need_port(), _statusword(r.axis)
 
     def read() -> int:
-        sw = port.read_status(STATUSWORD, 0)
+        sw = statusword()
         if not sw & Sw.TARGET_REACHED:
             return 0
         if sw & Sw.OP_MODE_12 and not sw & Sw.OP_MODE_13:

@@ -25,7 +25,7 @@ import logging
 from typing import Callable, FrozenSet, Final, List, Mapping, Optional, Tuple
 
 from ..bus.sdo import NodeSilent, object_type
-from ..cia402_words import MODES_DISPLAY, STATUSWORD, Mode
+from ..cia402_words import MODES_DISPLAY, Mode
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import State, Why
 from ..motion.cyclic import CSP_MODE, CSV_MODE
@@ -34,7 +34,7 @@ from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
 from .axis import VELOCITY_UNIT, AxisRuntime
 from .cyclic_moves import stop_cyclic, wait_stopped
-from .job import Ticket
+from .tickets import Ticket
 from .resolve import Resolved
 
 log = logging.getLogger("tcp_bridge.plan")
@@ -237,7 +237,7 @@ class DriveParameters:
     def write(self) -> None:
         """Command 85 and the power-cycle path of 04: every stored drive parameter."""
         port = self.axis.need_port()
-        port.read(STATUSWORD, 0)  # the drive is there, even with nothing to write
+        self.axis.need_drive().statusword()  # the drive is there, even with nothing to write
         for obj, raw in self._stored_writes():
             port.write(obj.index, obj.subindex, raw)
             self.axis.borrowed_profile.pop(obj, None)

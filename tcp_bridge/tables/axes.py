@@ -31,13 +31,9 @@ from types import MappingProxyType
 from typing import Any, Dict, Final, Mapping, Optional, Tuple, Union
 
 from .commands import COMMANDS, CommandKind, CommandSpec
-from ..errors import BridgeError
+from ..errors import ConfigError
 from ..wire import MAX_AXIS
 from .units import Number, Scaling, stored_parameter
-
-
-class ConfigError(BridgeError, ValueError):
-    """The axis table or the state file is not valid; raised at start-up only."""
 
 
 class DeviceCode(IntEnum):
