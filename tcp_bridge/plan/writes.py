@@ -29,6 +29,7 @@ from ..cia402_words import MODES_DISPLAY, STATUSWORD, Mode
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import State, Why
 from ..motion.cyclic import CSP_MODE, CSV_MODE
+from ..motion.supervision import HEARTBEAT_OBJECTS, WATCHDOG_OBJECTS
 from ..tables.axes import DeviceCode, parameter_spec, to_stored
 from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
@@ -153,6 +154,18 @@ def _device_code(r: Resolved) -> WritePlan:
     return _parameter(r)
 
 
+def supervision_objects(axis: AxisRuntime) -> FrozenSet[int]:
+    """The objects that make ``axis``'s drive stop when the bridge dies, which S81 never
+    writes (issue 30 finding 5): its heartbeat consumer's on a bus with ``heartbeat_ms``,
+    the watchdog reaction on EtherCAT (:mod:`tcp_bridge.motion.supervision`)."""
+    if axis.drive is not None and axis.drive.supervision is not None:
+        return HEARTBEAT_OBJECTS
+    bus = axis.params.table.buses.get(axis.config.bus)
+    if bus is not None and bus.backend == "ethercat":
+        return WATCHDOG_OBJECTS
+    return frozenset()
+
+
 def _sdo_access(r: Resolved) -> WritePlan:
     axis = r.axis
     assert axis is not None and r.value is not None
@@ -170,9 +183,20 @@ def _sdo_access(r: Resolved) -> WritePlan:
     raw = value - (1 << bits) if signed and value >= 1 << (bits - 1) else \
         value & ((1 << bits) - 1) if not signed else value
     guarded = selector.index in MOTION_OBJECTS
+    supervising = selector.index in supervision_objects(axis)
     drive = axis.drive
 
     def write_raw() -> None:
+        if supervising:
+            # Refused whatever the state: the bridge sets these up once per power-up
+            # (motion.supervision), so a value written now would still hold when the
+            # axis next moves, and a move would run that nothing stops if the bridge
+            # dies (issue 30: a velocity move outlived a SIGKILL after S81 to 1016h).
+            log.error("%s: S81 to 0x%04X/%d refused: it is the drive's supervision (what "
+                      "stops it when the bridge dies), which the bridge keeps as the bus "
+                      "table says", port.name, selector.index, selector.subindex)
+            raise DeviceFailure(f"{port.name}: 0x{selector.index:04X} is the drive's "
+                                "supervision: not written by S81")
         if guarded and drive is not None and drive.state() is State.OPERATION_ENABLED:
             log.error("%s: S81 to 0x%04X refused: the axis is enabled (it would power or "
                       "move it outside the motion rules)", port.name, selector.index)
