@@ -23,6 +23,7 @@ import pytest
 
 from epos_link.cia402 import State
 from tcp_bridge.engine import Engine, build_engine
+from tcp_bridge.errors import InvalidCommand
 from tcp_bridge.wire import Status
 from tests.helpers import wait_until
 from tests.test_bridge_csp import FACTOR, NODES, Sampler, ask, enable_both, table
@@ -111,3 +112,42 @@ def test_the_line_of_a_drive_that_stays_enabled_runs_to_its_end(engine: Engine) 
                "the line did not end in target")
     assert ask(engine, "1R12")[1] == "10" and ask(engine, "2R12")[1] == "-10"
     assert ask(engine, "1R86")[1] == "1" and ask(engine, "2R86")[1] == "1"
+
+
+# -- finding 3: 29/30 on cyclic axes ---------------------------------------------------------
+
+
+def test_s29_on_a_cyclic_axis_is_refused_not_acked_and_ignored(engine: Engine) -> None:
+    """Issue 30 finding 3, as it was seen: ``1S29=2 1S30=1 1S02=5 1S00=1`` on cyclic axis
+    1 was ACK all along, moved the master 5 mm and left the slave at 0 (a gantry coupled
+    so racks). Now 29 between cyclic axes is CAN (docs/bridge.md), so nothing is ACK and
+    then ignored; S90 is how cyclic axes move together."""
+    enable_both(engine)
+    sim = engine.backends[0].simulator
+    with pytest.raises(InvalidCommand, match="cannot be a master of 29"):
+        ask(engine, "1S29=2")
+    assert ask(engine, "1R29")[1] == "0"
+    assert ask(engine, "1S30=1")[0] is Status.ACK
+    assert ask(engine, "1S02=5")[0] is Status.ACK
+    assert ask(engine, "1S00=1")[0] is Status.ACK  # the master alone, as asked now
+    wait_until(lambda: ask(engine, "1R82")[1] == "1", 30, "S00=1 did not end in target")
+    assert ask(engine, "1R12")[1] == "5" and ask(engine, "2R12")[1] == "0"
+    # A 29 kept from before the axis was cyclic (the state file) does not move it either.
+    engine.params.set(1, 29, 2)
+    with pytest.raises(InvalidCommand, match="cannot be a master of 29"):
+        ask(engine, "1S00=1")
+    assert sim.drives[3].drive.motion_starts == 0
+
+
+def test_a_cyclic_axis_cannot_be_the_slave_of_29_either() -> None:
+    mapping = {"bridge": {"ack_timeout": 2.0}, "bus": {"can1": {"backend": "instant"}},
+               "axis": [{"device": 5, "node_id": 2, "cyclic": "csp", "internal": True,
+                         "increments_per_revolution": 2000},
+                        {"device": 5, "node_id": 3, "increments_per_revolution": 2000}]}
+    from tcp_bridge.tables.axes import AxisTable
+    from tcp_bridge.plan.writes import refuse_cyclic_coupling
+
+    axes = AxisTable.from_mapping(mapping).axes
+    with pytest.raises(InvalidCommand, match="axis 1 is cyclic .* slave of 29"):
+        refuse_cyclic_coupling(2, 1, axes)
+    refuse_cyclic_coupling(2, 2, {2: axes[2]})  # two profile axes: allowed

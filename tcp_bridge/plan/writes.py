@@ -22,7 +22,7 @@ drive's identity (1018h/1) when the bridge has read it.
 from __future__ import annotations
 
 import logging
-from typing import Callable, FrozenSet, Final, List, Mapping, Optional, Tuple
+from typing import Any, Callable, FrozenSet, Final, List, Mapping, Optional, Tuple
 
 from ..bus.sdo import NodeSilent, object_type
 from ..cia402_words import MODES_DISPLAY, STATUSWORD, Mode
@@ -103,6 +103,19 @@ def drive_writes(axis: AxisRuntime, n: int, user: Number,
     return writes
 
 
+def refuse_cyclic_coupling(master: int, slave: int, axes: Mapping[int, Any]) -> None:
+    """29 between axes where either is cyclic is CAN (issue 30 finding 3, **chosen**):
+    a cyclic axis moves on its bus's set-point lines only (:mod:`.cyclic_moves`), where
+    a slave would not follow; accepted, the master moved and the slave stayed at 0
+    (a gantry racks). docs/bridge.md says so."""
+    for addr, role in ((master, "master"), (slave, "slave")):
+        config = axes.get(addr)
+        if config is not None and config.cyclic is not None:
+            raise InvalidCommand(f"axis {addr} is cyclic ({config.cyclic!r}): it cannot be a "
+                                 f"{role} of 29 (a cyclic axis moves on its line alone; "
+                                 "use S90 for axes that move together)", cmd=29)
+
+
 def _parameter(r: Resolved) -> WritePlan:
     axis, n = r.axis, r.spec.number
     assert axis is not None and r.value is not None
@@ -110,6 +123,8 @@ def _parameter(r: Resolved) -> WritePlan:
     stored = to_stored(parameter_spec(n), value, axis.config.position_factor)
     if n == 29 and stored and (stored == axis.addr or stored not in axis.params.table.axes):
         raise InvalidCommand(f"slave axis {stored} is not another configured axis", cmd=29)
+    if n == 29 and stored:
+        refuse_cyclic_coupling(axis.addr, stored, axis.params.table.axes)
     if n == 80:
         SdoSelector.from_value(stored)  # length 1..4
     obj = axis.parameter_object(n)
