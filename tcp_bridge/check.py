@@ -184,6 +184,54 @@ def liveness_notes(axis_table: AxisTable) -> List[str]:
     return notes
 
 
+_REACTIONS = {0: "no action", 1: "fault", 2: "disable voltage", 3: "quick stop"}
+
+
+def read_supervision(port: SdoPort, bus: BusConfig, axes: List[AxisConfig],
+                     statusword: Optional[int]) -> str:
+    """What stops this drive if the bridge dies, as read from the drive itself (issue 30
+    finding 4): its heartbeat consumer 1016h:01 (CiA 301 7.5.2.19: producer node-ID
+    in bits 23..16, time in ms in 15..0) and its reaction 6007h (CiA 402-2); on
+    EtherCAT only 6007h, the reaction to the SM watchdog, whose registers no CoE read
+    reaches. Reads only; a drive in OPERATION ENABLED or QUICK STOP ACTIVE with no
+    consumer is UNSUPERVISED."""
+    from epos_link.cia402 import State, state_from_statusword
+
+    from .backends.heartbeat import heartbeat_settings
+
+    def read(index: int, sub: int, size: int, signed: bool) -> Optional[int]:
+        try:
+            return port.read(index, sub, size=size, signed=signed)
+        except DeviceFailure:
+            return None
+
+    reaction = read(0x6007, 0, 2, True)
+    said = ("6007h unreadable" if reaction is None
+            else f"6007h = {reaction} ({_REACTIONS.get(reaction, 'manufacturer specific')})")
+    if bus.backend == "ethercat":
+        return (f"SM watchdog of the process data (watchdog_ms, set when the bridge serves); "
+                f"its reaction {said}")
+    state = state_from_statusword(statusword) if statusword is not None else None
+    moving = state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+    entry = read(0x1016, 1, 4, False)
+    if entry is None:
+        return f"1016h:01 unreadable, {said}" + (": UNSUPERVISED while enabled" if moving else "")
+    node, ms = (entry >> 16) & 0xFF, entry & 0xFFFF
+    if node == 0 or ms == 0:
+        if moving and state is not None:
+            return (f"UNSUPERVISED: no heartbeat consumer (1016h:01 = 0) while {state.name}: "
+                    "if the bridge dies, it keeps its last command")
+        return "no heartbeat consumer (1016h:01 = 0)"
+    text = f"heartbeat consumer of node {node}, {ms} ms (1016h:01); {said}"
+    try:
+        hb = heartbeat_settings(bus.name, dict(bus.options), axes)
+    except ConfigError:
+        hb = None
+    if hb is not None and node != hb.producer_id:
+        text += f"; not the bridge's heartbeat (node {hb.producer_id})"
+    return text
+
+
 def _open_read_only(bus: BusConfig, axes: List[AxisConfig]) -> Any:
     """The bus's backend, opened read-only if its factory offers that (``ethercat``:
     slaves left in PREOP, no process data: nothing written to the drives)."""
@@ -211,7 +259,10 @@ def _check_bus(bus: BusConfig, axes: List[AxisConfig], params: ParameterStore,
         out: Dict[int, AxisReport] = {}
         for axis in axes:
             port = SdoPort(backend.node(axis.node_id), name=f"axis {axis.addr}")
-            out[axis.addr] = judge(axis, read_node(port, axis.device), params.scaling(axis.addr))
+            reading = read_node(port, axis.device)
+            if reading.silent is None:
+                reading.supervision = read_supervision(port, bus, axes, reading.statusword)
+            out[axis.addr] = judge(axis, reading, params.scaling(axis.addr))
         return out
     finally:
         backend.close()
@@ -281,7 +332,9 @@ def run(args: argparse.Namespace, prog: str = "tcp-bridge check") -> int:
             print(as_json(report))
     else:
         print(format_table(reports))
-    for note in [*found, *liveness_notes(axes)]:
+    supervision = [f"axis {r.axis.addr} supervision: {r.reading.supervision}"
+                   for r in reports if r.reading.supervision is not None]
+    for note in [*found, *liveness_notes(axes), *supervision]:
         print(note, file=sys.stderr if args.json else sys.stdout)
     return 0 if all(r.ok for r in reports) else 1
 

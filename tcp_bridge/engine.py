@@ -225,9 +225,17 @@ class Engine:
         A velocity unit the bridge does not know, or a main sensor resolution other
         than the axis's ``increments_per_revolution``, is logged at once rather
         than found by the first velocity command; an absent drive is read later,
-        when a command needs it. Nothing is written.
+        when a command needs it. Nothing is written, except to a drive found enabled
+        on a bus with ``heartbeat_ms``: its heartbeat consumer, queued first, before
+        any request (:meth:`~tcp_bridge.motion.Cia402.supervise_if_enabled`, issue 30).
         """
-        jobs = [self._workers[axis.config.bus].submit(
+        arms = [self._workers[axis.config.bus].submit(
+                    self.guards[axis.config.bus].guarded(axis.drive.supervise_if_enabled,
+                                                         axis.config.node_id))
+                for axis in self.axes.values()
+                if axis.drive is not None and axis.drive.supervision is not None
+                and axis.config.bus in self._workers]
+        jobs = arms + [self._workers[axis.config.bus].submit(
                     self.guards[axis.config.bus].guarded(axis.probe_units, axis.config.node_id))
                 for axis in self.axes.values()
                 if axis.port is not None and axis.config.bus in self._workers

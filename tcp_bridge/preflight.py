@@ -80,6 +80,8 @@ class Reading:
     position: Optional[int] = None  # 6064h, increments
     velocity_unit: Optional[int] = None  # 60A9h (EPOS4)
     sensor_resolution: Optional[int] = None  # 3000h/05h (EPOS4)
+    # What stops the drive if the bridge dies, as read from it (tcp_bridge.check).
+    supervision: Optional[str] = None
     failures: Dict[str, str] = field(default_factory=dict)
 
 
@@ -240,6 +242,6 @@ def as_json(report: AxisReport) -> str:
         "position_increments": r.position, "position": report.position,
         "velocity_unit": _hex(r.velocity_unit), "sensor_resolution": r.sensor_resolution,
         "increments_per_revolution": axis.increments_per_revolution,
-        "unreadable": dict(r.failures),
+        "supervision": r.supervision, "unreadable": dict(r.failures),
     }
     return json.dumps(data)

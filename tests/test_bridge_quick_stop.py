@@ -19,9 +19,9 @@ import pytest
 
 from epos_link.cia402 import State
 from epos_link.framing import decode_frames
-from epos_link.messages import WriteObject, decode_request
+from epos_link.messages import ReadObject, WriteObject, decode_request
 from tcp_bridge.wire import Status
-from tests.bridge_sim import SimBridge
+from tests.bridge_sim import SimBridge, run_velocity_move
 
 NODE = 2
 QUICK_STOP = 0x000B  # CiA 402-2 6.4.1.2: quick stop command, bits 0..3 = x011 (bit 2 low)
@@ -34,10 +34,10 @@ def bridge() -> Iterator[SimBridge]:
     b.close()
 
 
-def quick_stop_on(bridge: SimBridge, index: int) -> List[int]:
+def quick_stop_on(bridge: SimBridge, index: int, kind: type = WriteObject) -> List[int]:
     """Quick-stop the drive as another master does, as soon as the bridge's write of
-    ``index`` to it goes out (before the drive executes it). Returns a list that gets
-    one entry when it fired."""
+    ``index`` (or, with ``kind`` ReadObject, its read) to it goes out (before the
+    drive executes it). Returns a list that gets one entry when it fired."""
     fired: List[int] = []
     plain = bridge.transport.write
 
@@ -47,8 +47,8 @@ def quick_stop_on(bridge: SimBridge, index: int) -> List[int]:
                 message = decode_request(frame)
             except Exception:
                 continue
-            if (isinstance(message, WriteObject) and message.node == NODE
-                    and message.index == index and not fired):
+            if (isinstance(message, kind) and getattr(message, "node", None) == NODE
+                    and getattr(message, "index", None) == index and not fired):
                 fired.append(1)
                 bridge.other_master_write(NODE, 0x6040, 0, QUICK_STOP, 2)
         return plain(data)
@@ -89,6 +89,27 @@ def test_a_quick_stop_during_a_velocity_start_is_not_undone(bridge: SimBridge) -
     time.sleep(0.3)
     drive = bridge.now(NODE)
     assert drive.state is State.QUICK_STOP_ACTIVE and drive.velocity == 0
+    assert 16 not in transitions(bridge)
+
+
+def test_a_running_velocity_move_changed_while_quick_stopped_is_nak(bridge: SimBridge) -> None:
+    """Issue 30 finding 6, as it was seen: a velocity move turns, the drive quick-stops
+    (another master here; an input or its 6007h reaction alike) while the bridge
+    prepares a new speed for it, and S00=3 answered ACK with R86=1 although the drive
+    stayed in QUICK STOP ACTIVE: the running-move path wrote 60FFh with no state
+    check. The quick stop lands as the bridge reads the controlword, after the
+    move's own enabled check: the state read before 60FFh refuses."""
+    run_velocity_move(bridge, NODE)
+    held = bridge.other_master_read(NODE, 0x60FF, 0, signed=True)
+    bridge.ok(f"{NODE}S05=10")
+    fired = quick_stop_on(bridge, 0x6040, ReadObject)
+    reply = bridge.ask(f"{NODE}S00=3")
+    assert fired
+    assert reply.status is Status.NAK
+    assert bridge.ok(f"{NODE}R86") == "0"  # not started: the drive took no new speed
+    bridge.wait_until(lambda: bridge.now(NODE).velocity == 0, why="the quick stop never ended")
+    assert bridge.now(NODE).state is State.QUICK_STOP_ACTIVE
+    assert bridge.other_master_read(NODE, 0x60FF, 0, signed=True) == held  # nothing written
     assert 16 not in transitions(bridge)
 
 

@@ -211,9 +211,15 @@ class CanopenBackend:
         self.nodes: Dict[int, FedNode] = {}
         self.heartbeat: Optional[HeartbeatProducer] = (
             HeartbeatProducer(bus.name, self.network, heartbeat) if heartbeat else None)
-        self.cyclic: Optional[CyclicSender] = (
-            CyclicSender(bus.name, CanopenSetpoints(self.network), cycle_ms / 1000.0)
-            if self.cyclic_nodes else None)
+        self.cyclic: Optional[CyclicSender] = None
+        if self.cyclic_nodes and heartbeat is not None:
+            # The drives' statuswords come as often as the heartbeat goes; a drive silent
+            # for twice the consumer time is lost (chosen: a drive judges the bridge
+            # lost after the consumer time; a loaded host that reads a statusword late
+            # must not end a line, so the bridge gives the drive twice that).
+            setpoints = CanopenSetpoints(self.network, heartbeat.period_ms / 1000.0,
+                                         2 * heartbeat.consumer_ms / 1000.0)
+            self.cyclic = CyclicSender(bus.name, setpoints, cycle_ms / 1000.0)
 
     def node(self, node_id: int) -> FedNode:
         node = self.nodes.get(node_id)

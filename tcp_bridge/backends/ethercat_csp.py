@@ -32,16 +32,17 @@ when the recovery brings the slave back to OP.
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, Dict, Iterable, Mapping
+from typing import Any, Callable, Dict, Iterable, Mapping, Optional
 
 from ..errors import DeviceFailure
-from ..motion.cyclic import CyclicSender
+from ..motion.cyclic import CyclicSender, Seen
 
 log = logging.getLogger("tcp_bridge.motion")
 
 TARGET_POSITION = 0x607A
 TARGET_VELOCITY = 0x60FF
 POSITION_ACTUAL = 0x6064
+STATUSWORD = 0x6041
 
 
 class EthercatSetpoints:
@@ -86,6 +87,25 @@ class EthercatSetpoints:
         for node, velocity in velocities.items():
             self.backend.node(node).pdo_write(TARGET_VELOCITY, 0, velocity)  # 60FFh only
 
+    def statuswords(self, nodes: Iterable[int]) -> Dict[int, Seen]:
+        """Each slave's statusword 6041h from this cycle's inputs (issue 30 finding 2,
+        "a line is one motion"); why it is lost (out of OP, the link down) instead; None
+        for a slave that does not map 6041h in (then only its own reaction stops it)."""
+        cycle = self.backend.cycle
+        out: Dict[int, Seen] = {}
+        for node in nodes:
+            if cycle.link_down:
+                out[node] = f"no EtherCAT frame comes back on {self.backend.interface}"
+                continue
+            why = cycle.lost.get(node)
+            if why is not None:
+                out[node] = why
+                continue
+            layout = self.backend.layouts.get(node)
+            out[node] = (self.backend.node(node).pdo_read(STATUSWORD)
+                         if layout is not None and (STATUSWORD, 0) in layout.inputs else None)
+        return out
+
     def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
         out: Dict[int, int] = {}
         for n in nodes:
@@ -126,10 +146,11 @@ class CycleSender(CyclicSender):
     def alive(self) -> bool:
         return self._hooked and not self._stop.is_set()
 
-    def start(self, nodes: Any, line: Any, timeout: float) -> Any:
+    def start(self, nodes: Any, line: Any, timeout: float,
+              on_end: Optional[Callable[[int, str], None]] = None) -> Any:
         if self._stop.is_set():
             raise DeviceFailure(f"bus {self.bus}: the cyclic set-points have ended")
-        return super().start(nodes, line, timeout)
+        return super().start(nodes, line, timeout, on_end)
 
     def _on_cycle(self, count: int) -> None:
         if self._stop.is_set():

@@ -33,9 +33,11 @@ so that a stalled set-point stream also stops the heartbeat.
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any, Dict, Iterable, Optional, Sequence
 
 from ..bus.sdo import SdoPort
+from ..cia402_words import Deadline, Sw
 from ..errors import DeviceFailure
 from ..motion.supervision import ABORT_CONNECTION_CODES, HeartbeatSettings, Supervision
 from ..tables.axes import AxisConfig, ConfigError
@@ -49,6 +51,8 @@ DEFAULT_FACTOR = 3
 MIN_FACTOR, MAX_FACTOR = 2, 4
 PERIOD_RANGE = (10, 10000)
 OPERATIONAL = 0x05  # CiA 301 7.2.8.3.2.2, Table 44: heartbeat state Operational
+REST_TIMEOUT = 10.0  # seconds a moving drive is given to halt at shutdown (chosen: as
+# CyclicSender.finish_runs bounds a cyclic stop ramp)
 
 
 def _int(bus: str, name: str, value: Any, low: int, high: int, unit: str = "") -> int:
@@ -112,7 +116,7 @@ class HeartbeatProducer:
         return self._task is not None or (self._driven and not self._stopped)
 
     def supervision(self, node_id: int) -> Supervision:
-        return Supervision(self.settings, node_id)
+        return Supervision(self.settings, node_id, beat=self.beat)
 
     def start(self, driver: Any = None) -> None:
         """Heartbeat from now on: python-can's periodic task, or, with ``driver`` (the
@@ -135,13 +139,18 @@ class HeartbeatProducer:
         if not self._stopped:
             self.network.send_message(0x700 + self.settings.producer_id, bytes([OPERATIONAL]))
 
-    def stop(self, nodes: Iterable[Any]) -> None:
-        """Clean shutdown: switch off every consumer the bridge set, then stop the heartbeat."""
+    def stop(self, nodes: Iterable[Any], rest_timeout: float = REST_TIMEOUT) -> None:
+        """Clean shutdown: bring every supervised drive to rest, switch off its consumer,
+        then stop the heartbeat (issue 30 finding 4: a profile velocity move was left
+        turning with its consumer released, so that nothing stopped it afterwards)."""
         for node in nodes:
             supervision: Optional[Supervision] = getattr(node, "supervision", None)
             if supervision is None:
                 continue
             port = SdoPort(node, name=f"bus {self.bus} node {supervision.node_id}")
+            if supervision.written and getattr(node, "cyclic", None) is None \
+                    and not _brought_to_rest(port, rest_timeout):
+                continue  # its consumer stays on: it reacts (6007h) once the heartbeat ends
             try:
                 supervision.release(port)
             except DeviceFailure as exc:
@@ -154,6 +163,34 @@ class HeartbeatProducer:
                 task.stop()
             except Exception:  # the adapter is gone: nothing is sent anyway
                 pass
+
+
+def _brought_to_rest(port: SdoPort, timeout: float) -> bool:
+    """A drive the bridge supervised, at shutdown: halted (cw bit 8 and 60FFh = 0, as
+    S00=8; CiA 402-2 6.4.1.3 halt ramps at 6084h) and at standstill (sw bit 10 with
+    halt set) before its consumer is switched off, as cyclic moves ramp down before
+    it (:meth:`~tcp_bridge.motion.cyclic.CyclicSender.finish_runs`); a quick stop
+    is let finish. False (logged) if it did not come to rest within ``timeout``:
+    then its consumer is left on, and the drive's own reaction (6007h) stops it
+    when the heartbeat ends. Cyclic axes rest on their own ramps, not here."""
+    from ..motion import Cia402, State, Timing
+
+    drive = Cia402(port, Timing(ack_timeout=timeout, state_timeout=timeout))
+    deadline = Deadline(time.monotonic, timeout)
+    try:
+        state = drive.state()
+        if state is State.OPERATION_ENABLED:
+            drive.halt()
+            drive.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
+                              "standstill after halt")
+        elif state is State.QUICK_STOP_ACTIVE:
+            drive.wait_status(lambda sw: bool(sw & Sw.TARGET_REACHED), deadline.time_left(),
+                              "end of quick stop")
+    except DeviceFailure as exc:
+        log.warning("%s: not at rest at shutdown (%s): its heartbeat consumer is left on, so "
+                    "it reacts (6007h) when the heartbeat stops now", port.name, exc)
+        return False
+    return True
 
 
 __all__ = ["HEARTBEAT_OPTIONS", "HeartbeatProducer", "heartbeat_settings", "refuse_heartbeat"]

@@ -25,6 +25,21 @@ The rules (the safety rules of :mod:`tcp_bridge.motion` hold):
   run's profile by its stop ramp (:meth:`.profile.Line.stop_at`) at the
   next cycle, never a step. A transport error ends the run (logged); the
   drive then holds its last set-point.
+* **A line is one motion** (issue 30 finding 2): every cycle, before the
+  set-points go out, the sender looks at each drive of each run as its process
+  data shows it now (:meth:`Setpoints.statuswords`: on CAN the statusword in
+  TPDO3, which :class:`CanopenSetpoints` maps; on EtherCAT the statusword in
+  the inputs of that cycle). When one drive of a run shows any state other
+  than OPERATION ENABLED (its quick stop input, a fault such as 8611h
+  following error, its 6007h reaction), or is lost (no fresh statusword, the
+  slave out of OP), every other drive of the run ramps down on the line at 28
+  from that cycle (:meth:`.profile.Line.stop_at`), exactly as S90=0 would; the
+  drive that ended it gets no more set-points (it follows its own reaction,
+  CiA 402-2 6.4.1: in QUICK STOP ACTIVE or FAULT the drive does not follow
+  607Ah). The run records which node ended it and why (:attr:`Run.ended_by`,
+  logged once, and its ``on_end`` callback: R86 of that axis becomes 0). The
+  drive itself decides that it left the motion; the bridge only stops the rest
+  of the line with it, so the tool stays on its straight line.
 * **A lost cycle thread ends in the drive's own reaction**: on CAN that is
   the heartbeat consumer (issue 23): a bus with cyclic axes must have
   ``heartbeat_ms`` (ConfigError otherwise), so a bridge that dies stops
@@ -54,7 +69,10 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Protocol, Tuple, Union
+from typing import (Any, Callable, Dict, Iterable, List, Mapping, Optional, Protocol, Set, Tuple,
+                    Union)
+
+from epos_link.cia402 import State, state_from_statusword
 
 from ..errors import DeviceFailure
 from .profile import Line, VelocityRamp
@@ -83,6 +101,14 @@ class Setpoints(Protocol):
     def write_velocities(self, velocities: Mapping[int, int]) -> None:
         """Send a target velocity (60FFh, the drive's velocity unit) to each node."""
 
+    def statuswords(self, nodes: Iterable[int]) -> Mapping[int, Seen]:
+        """Each node's statusword as its process data shows it now (the cycle thread):
+        the statusword, None while none has come yet since :meth:`prepare` (no verdict),
+        or a text saying why the node is lost (no statusword for too long, out of OP)."""
+
+
+Seen = Union[int, str, None]  # Setpoints.statuswords: statusword, why lost, or not yet
+
 
 @dataclass
 class Run:
@@ -93,6 +119,10 @@ class Run:
     started: threading.Event = field(default_factory=threading.Event)
     ended: threading.Event = field(default_factory=threading.Event)
     failure: Optional[str] = None
+    # The node whose drive left the motion, and why (module doc, "a line is one motion").
+    ended_by: Optional[Tuple[int, str]] = None
+    on_end: Optional[Callable[[int, str], None]] = None  # called once with ended_by
+    out: Set[int] = field(default_factory=set)  # nodes sent nothing more (they left)
 
 
 class CyclicSender:
@@ -196,16 +226,19 @@ class CyclicSender:
             runs = list(self._runs)
         if not runs:
             return False
+        self._watch(runs, now)
         targets: Dict[int, int] = {}
         velocities: Dict[int, int] = {}
         for run in runs:
             line = run.line
             if isinstance(line, VelocityRamp):
                 for node, velocity in zip(run.nodes, line.velocities(now)):
-                    velocities[node] = round(velocity)
+                    if node not in run.out:
+                        velocities[node] = round(velocity)
             else:
                 for node, position in zip(run.nodes, line.positions(now)):
-                    targets[node] = round(position)
+                    if node not in run.out:
+                        targets[node] = round(position)
         try:
             if targets:
                 self.transport.write_targets(targets)
@@ -226,6 +259,40 @@ class CyclicSender:
                     self._end(run)  # its last sample was the target itself
         return True
 
+    def _watch(self, runs: List[Run], now: float) -> None:
+        """A line is one motion (module docstring): the drives of each run as their
+        process data shows them now; a run whose drive left ramps down from ``now``."""
+        nodes = {n for run in runs for n in run.nodes if n not in run.out}
+        if not nodes:
+            return
+        seen = self.transport.statuswords(nodes)
+        for run in runs:
+            for node in run.nodes:
+                if node in run.out:
+                    continue
+                why = _left(seen.get(node))
+                if why is None:
+                    continue
+                with self._lock:
+                    run.out.add(node)
+                    first = run.ended_by is None
+                    if first:
+                        run.ended_by = (node, why)
+                        if run in self._runs:
+                            run.line = run.line.stop_at(now)
+                if not first:
+                    continue
+                others = [n for n in run.nodes if n != node]
+                log.error("bus %s: node %d left the cyclic move (%s); %s", self.bus, node, why,
+                          f"nodes {others} ramp down on its line" if others
+                          else "its set-point ramps down")
+                if run.on_end is not None:
+                    try:
+                        run.on_end(node, why)
+                    except Exception:  # a bug in the callback must not stop the cycle
+                        log.exception("bus %s: the end of a cyclic move was not recorded",
+                                      self.bus)
+
     def _end(self, run: Run) -> None:
         if run in self._runs:
             self._runs.remove(run)
@@ -244,8 +311,9 @@ class CyclicSender:
             return self._last.get(node)
 
     def start(self, nodes: Tuple[int, ...], line: Union[Line, VelocityRamp],
-              timeout: float) -> Run:
-        """Stream ``line`` to ``nodes``; returns once its first set-points went out."""
+              timeout: float, on_end: Optional[Callable[[int, str], None]] = None) -> Run:
+        """Stream ``line`` to ``nodes``; returns once its first set-points went out.
+        ``on_end(node, why)``: called (on the cycle thread) if a drive leaves the run."""
         if not self.alive() and self._thread is not None:
             raise DeviceFailure(f"bus {self.bus}: the cyclic thread has ended")
         with self._lock:
@@ -253,7 +321,7 @@ class CyclicSender:
             if busy:
                 raise DeviceFailure(f"bus {self.bus}: nodes {busy} are still on a cyclic move; "
                                     "stop them first (S90=0 or S00=8)")
-            run = Run(tuple(nodes), line)
+            run = Run(tuple(nodes), line, on_end=on_end)
             self._runs.append(run)
             for n in nodes:
                 self._last[n] = run
@@ -265,6 +333,10 @@ class CyclicSender:
                                 f"{timeout:g} s; the move was stopped")
         if run.failure is not None:
             raise DeviceFailure(f"bus {self.bus}: the set-points were not sent: {run.failure}")
+        if run.ended_by is not None:
+            node, why = run.ended_by
+            raise DeviceFailure(f"bus {self.bus}: node {node} left the move as it started "
+                                f"({why}); the others ramp down")
         return run
 
     def stop(self, nodes: Iterable[int]) -> List[Run]:
@@ -276,6 +348,19 @@ class CyclicSender:
             for run in stopped:
                 run.line = run.line.stop_at(now)
         return stopped
+
+
+def _left(seen: Seen) -> Optional[str]:
+    """Why a drive has left the motion (None: it has not, or nothing is known yet)."""
+    if seen is None:
+        return None
+    if isinstance(seen, str):
+        return f"lost: {seen}"
+    state = state_from_statusword(seen)
+    if state is State.OPERATION_ENABLED:
+        return None
+    name = state.name if state is not None else "no CiA 402 state"
+    return f"{name}, statusword 0x{seen:04X}"
 
 
 class CanopenSetpoints:
@@ -293,15 +378,32 @@ class CanopenSetpoints:
     by SDO before the run (S04=1); the stream only moves its target.
     Event-driven (type 255): each frame is acted upon at once; a SYNC-driven
     mapping is left to an EtherCAT-like transport with distributed clocks.
+
+    The drives' states (:meth:`statuswords`, "a line is one motion"): TPDO3
+    (COB-ID 380h + node-ID, CiA 301 Table 3-15 of the EPOS4 guide: 1802h) is
+    mapped to the statusword 6041h alone, event-driven (type 255: sent when it
+    changes, CiA 301 7.2.2.2.1) with an event timer of ``status_period`` (the
+    bus's heartbeat period), so a live drive sends it at least that often. A
+    drive whose statusword has not come for ``lost_after`` (twice the bus's
+    heartbeat consumer time, :mod:`tcp_bridge.backends.canopen_bus`) is lost. TPDO1 and TPDO2 stay free for ``pdo = true``
+    (:mod:`tcp_bridge.backends.pdo_status`).
     """
 
     RPDO = 3
     VELOCITY_RPDO = 4  # CSV: RPDO4 (controlword + 60FFh by default) remapped to 60FFh alone
+    STATUS_TPDO = 3
 
-    def __init__(self, network: Any) -> None:
+    def __init__(self, network: Any, status_period: float = 0.05,
+                 lost_after: float = 0.3, clock: Callable[[], float] = time.monotonic) -> None:
         self.network = network
+        self.status_period = status_period
+        self.lost_after = lost_after
+        self.clock = clock
         self._vars: Dict[int, Tuple[Any, Any]] = {}  # node -> (pdo, target)
         self._velocity_vars: Dict[int, Tuple[Any, Any]] = {}  # node -> (pdo, 60FFh)
+        # node -> (statusword, received at); node -> when its TPDO3 was (re)mapped.
+        self._status: Dict[int, Tuple[int, float]] = {}
+        self._watched: Dict[int, float] = {}
 
     def _remap(self, node: int, number: int, index: int) -> Tuple[Any, Any]:
         remote = self.network[node]
@@ -320,10 +422,54 @@ class CanopenSetpoints:
 
     def prepare(self, node: int) -> None:
         self._vars[node] = self._remap(node, self.RPDO, 0x607A)
+        self._watch_status(node)
 
     def prepare_velocity(self, node: int) -> None:
         """RPDO4 to 60FFh alone: no controlword in the stream, for the reason above."""
         self._velocity_vars[node] = self._remap(node, self.VELOCITY_RPDO, 0x60FF)
+        self._watch_status(node)
+
+    def _watch_status(self, node: int) -> None:
+        """TPDO3 = 6041h (class docstring); bus worker. Values from before count not."""
+        remote = self.network[node]
+        tpdo = remote.tpdo[self.STATUS_TPDO]
+        tpdo.read()
+        tpdo.clear()
+        if tpdo.add_variable(0x6041) is None:  # canopen logs and returns None
+            raise DeviceFailure(f"node {node}: 6041h is not in the object dictionary (an EDS "
+                                "is needed for CSP/CSV)")
+        tpdo.trans_type = 255
+        tpdo.event_timer = max(1, round(self.status_period * 1e3))  # ms
+        tpdo.inhibit_time = 0  # a change of state is wanted at once
+        tpdo.enabled = True
+        first = node not in self._watched
+        self._watched[node] = self.clock()
+        if first:
+            def received(pdo: Any, node: int = node) -> None:  # the CAN notifier thread
+                self._status[node] = (int(pdo[0x6041].raw), self.clock())
+            tpdo.add_callback(received)
+        tpdo.save()
+        remote.nmt.state = "OPERATIONAL"
+
+    def statuswords(self, nodes: Iterable[int]) -> Dict[int, Seen]:
+        now = self.clock()
+        out: Dict[int, Seen] = {}
+        for node in nodes:
+            since = self._watched.get(node)
+            if since is None:
+                out[node] = None  # not watched (never prepared): no verdict
+                continue
+            entry = self._status.get(node)
+            last = entry[1] if entry is not None and entry[1] >= since else None
+            if last is None:
+                out[node] = (f"no statusword (TPDO3) for {now - since:.3f} s" if
+                             now - since > self.lost_after else None)
+            elif now - last > self.lost_after:
+                out[node] = f"no statusword (TPDO3) for {now - last:.3f} s"
+            else:
+                assert entry is not None
+                out[node] = entry[0]
+        return out
 
     def write_targets(self, targets: Mapping[int, int]) -> None:
         for node, position in targets.items():

@@ -247,6 +247,29 @@ class Cia402(MoveStarts, Lowering, Recovery):
         if self.supervision is not None:
             self.supervision.ensure(self.port)
 
+    def supervise_if_enabled(self) -> None:
+        """At start-up (issue 30 finding 4): a drive found in OPERATION ENABLED or on its
+        quick stop ramp (a bridge restarted under a running move, another master) has
+        its heartbeat consumer set up at once, before any request about it runs (a
+        job the engine queues on the bus before serving). Without it the drive would
+        run unwatched until a client's S04=1 or move, and a bridge killed meanwhile
+        would leave it turning. A drive that refuses is logged as unsupervised (and
+        ``tcp-bridge check`` shows it so, from 1016h); DeviceFailure then."""
+        if self.supervision is None:
+            return
+        state = self.state()
+        if state not in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            return  # nothing can move before a client's S04=1, which sets it up
+        try:
+            self.ensure_supervised()
+        except DeviceFailure as exc:
+            log.error("%s: found in %s at start-up and UNSUPERVISED: its heartbeat "
+                      "consumer could not be set up (%s); if the bridge dies, it keeps its "
+                      "last command", self.port.name, state.name, exc)
+            raise
+        log.info("%s: found in %s at start-up: its heartbeat consumer is on",
+                 self.port.name, state.name)
+
     def _enable_steps(self, deadline: Deadline) -> None:
         # Halt rides along on every step (bit 8 is ignored outside OPERATION
         # ENABLED), so the drive arrives there halted: rule 2.

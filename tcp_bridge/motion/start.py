@@ -192,9 +192,21 @@ class MoveStarts:
             # Running unhalted, the new 60FFh is itself the start; halted, the
             # release of halt is. Both are read back if an answer is lost.
             halted = self._again(lambda: self.port.read(CONTROLWORD, 0), deadline) & Cw.HALT
+            # Issue 30 finding 6: the state is read just before 60FFh goes out, as
+            # before every controlword with enable operation (write_while_enabled). A
+            # drive in QUICK STOP ACTIVE gets nothing but what keeps it there (CiA
+            # 402-2 6.4.1: with 605Ah = 5..8, the EPOS4 default 6, it stays there at
+            # rest), and a running move's new speed is not one it takes.
+            self._again(self.require_enabled, deadline)
             self._write_confirmed(TARGET_VELOCITY, what.velocity, deadline)
             if halted:
                 self._write_confirmed(CONTROLWORD, Cw.ENABLE_OPERATION, deadline)
+            else:
+                # The 60FFh write starts nothing by itself in a drive that left
+                # OPERATION ENABLED in the round trip since that read (CiA 402-2 6.9:
+                # the profile velocity generator runs only there); the reply says what
+                # the drive does, so it is read once more (rule 4).
+                self._again(self.require_enabled, deadline)
             return
         word = (_pp_base(what) | Cw.NEW_SET_POINT if isinstance(what, PositionMove)
                 else Cw.ENABLE_OPERATION | Cw.NEW_SET_POINT)  # edge, halt released

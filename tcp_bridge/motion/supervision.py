@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Dict, Final
+from typing import Callable, Dict, Final, Optional
 
 from ..bus.sdo import NodeSilent, SdoPort
 from ..errors import DeviceFailure
@@ -53,7 +53,18 @@ log = logging.getLogger("tcp_bridge.motion")
 
 CONSUMER_HEARTBEAT_TIME: Final = 0x1016  # CiA 301 7.5.2.19, ARRAY of UNSIGNED32
 CONSUMER_SUB: Final = 1
+PRODUCER_HEARTBEAT_TIME: Final = 0x1017  # CiA 301 7.5.2.20, UNSIGNED16
 ABORT_CONNECTION: Final = 0x6007  # CiA 402-2, INTEGER16
+
+# What makes a drive stop when the bridge dies (issue 30 finding 5): S81 leaves these
+# alone on a supervised axis. On a heartbeat bus: the consumer (1016h), the drive's own
+# heartbeat (1017h, CiA 301: 0 switches it off, which the bridge's lost-drive watch
+# would see as a lost drive) and the reaction (6007h). On EtherCAT the SM watchdog's
+# time and divider are ESC registers 0420h/0400h (ETG.1000.4 6.3), which no CoE SDO
+# reaches (S81 is an SDO), so there only 6007h, the drive's reaction to the watchdog.
+HEARTBEAT_OBJECTS: Final = frozenset({CONSUMER_HEARTBEAT_TIME, PRODUCER_HEARTBEAT_TIME,
+                                      ABORT_CONNECTION})
+WATCHDOG_OBJECTS: Final = frozenset({ABORT_CONNECTION})
 
 # abort_connection = "..." in the bus table -> 6007h value (CiA 402-2 object 6007h).
 ABORT_CONNECTION_CODES: Final[Dict[str, int]] = {
@@ -78,9 +89,12 @@ class HeartbeatSettings:
 class Supervision:
     """One drive's heartbeat consumer, as the bridge sets it up (module docstring)."""
 
-    def __init__(self, settings: HeartbeatSettings, node_id: int) -> None:
+    def __init__(self, settings: HeartbeatSettings, node_id: int,
+                 beat: Optional[Callable[[], None]] = None) -> None:
         self.settings = settings
         self.node_id = node_id
+        # One heartbeat frame now (the producer's): see _configure.
+        self._beat = beat
         self._generation = 0  # bumped by stale()
         self._done = -1  # the generation the last successful setup belongs to
         self.written = False  # 1016h:01 written this session: released at a clean shutdown
@@ -115,6 +129,7 @@ class Supervision:
         held = port.read(CONSUMER_HEARTBEAT_TIME, CONSUMER_SUB, size=4, signed=False)
         if held == entry:
             self.written = True
+            self._activate()
             return
         if held & 0xFFFF:
             if (held >> 16) & 0xFF != s.producer_id:
@@ -130,9 +145,25 @@ class Supervision:
         except DeviceFailure:
             self.written = False  # refused (an abort): the drive holds no entry of ours
             raise
+        self._activate()
         log.info("%s: heartbeat consumer on: node %d every %d ms, at most %d ms silence, "
                  "then 6007h = %d", port.name, s.producer_id, s.period_ms, s.consumer_ms,
                  s.abort_connection)
+
+    def _activate(self) -> None:
+        """A consumer watches only from the first heartbeat it receives after it was
+        configured (CiA 301 V4.2 7.2.8.3.2.2: "activated by the first reception"): a
+        bridge killed within one period after the write would leave the drive
+        unwatched (issue 30: a bridge that arms a drive it found moving and is killed
+        right after its first answer). So one heartbeat goes out now, after the
+        drive's answer to the 1016h write; an extra frame only restarts the
+        consumer's timer."""
+        if self._beat is not None:
+            try:
+                self._beat()
+            except Exception as exc:  # a bus error: the periodic heartbeat follows anyway
+                log.warning("heartbeat not sent after setting up node %d's consumer (%s)",
+                            self.node_id, exc)
 
     def release(self, port: SdoPort) -> None:
         """Clean shutdown: switch the consumer off (1016h:01 = 0), if the bridge set it."""
@@ -144,4 +175,5 @@ class Supervision:
 
 
 __all__ = ["ABORT_CONNECTION", "ABORT_CONNECTION_CODES", "CONSUMER_HEARTBEAT_TIME",
-           "HeartbeatSettings", "Supervision"]
+           "HEARTBEAT_OBJECTS", "HeartbeatSettings", "PRODUCER_HEARTBEAT_TIME", "Supervision",
+           "WATCHDOG_OBJECTS"]

@@ -26,6 +26,7 @@ Velocity moves (S00=3) of a cyclic axis run in CSV: :mod:`.cyclic_velocity`.
 """
 from __future__ import annotations
 
+import logging
 from typing import Callable, List, Optional, Sequence, Tuple
 
 from epos_link.cia402 import State
@@ -35,6 +36,8 @@ from ..errors import DeviceFailure, InvalidCommand
 from ..motion.cyclic import CSP_MODE, CyclicSender
 from ..motion.profile import AxisLimits, VelocityRamp, plan_line
 from .axis import AxisRuntime
+
+log = logging.getLogger("tcp_bridge.plan")
 
 POSITION_ACTUAL = 0x6064
 TARGET_POSITION = 0x607A
@@ -112,12 +115,31 @@ def line_move(axes: Sequence[AxisRuntime], targets: Sequence[Target]) -> Callabl
             axis.moving_ack = 0
         line = plan_line(starts, ends, fixed, sender.clock() + sender.cycle)
         nodes = tuple(a.config.node_id for a in axes)
-        sender.start(nodes, line, max(deadline.time_left(), 10 * sender.cycle))
+        sender.start(nodes, line, max(deadline.time_left(), 10 * sender.cycle),
+                     on_end=left_the_line(axes))
         for drive in drives:
             drive.require_enabled()  # the drive took the first set-points
         for axis in axes:
             axis.moving_ack = 1
     return run
+
+
+def left_the_line(axes: Sequence[AxisRuntime]) -> Callable[[int, str], None]:
+    """What a run records when one of its drives leaves OPERATION ENABLED or is lost
+    (:class:`~tcp_bridge.motion.cyclic.CyclicSender`, "a line is one motion"): that
+    axis's R86 becomes 0 (its move was not made; the others' moves were accepted and
+    are ramped down as by a stop), and the log names the axis (issue 30 finding 2)."""
+    by_node = {a.config.node_id: a for a in axes}
+
+    def ended(node: int, why: str) -> None:
+        axis = by_node.get(node)
+        if axis is None:
+            return
+        axis.moving_ack = 0
+        others = [a.addr for a in axes if a is not axis]
+        log.error("axis %d left its cyclic move (%s)%s", axis.addr, why,
+                  f"; axes {others} on its line ramp down at 28" if others else "")
+    return ended
 
 
 def stop_cyclic(axis: AxisRuntime) -> bool:
@@ -194,5 +216,6 @@ def plan_cyclic_line(internal: Sequence[AxisRuntime], how: int) -> Tuple[AxisRun
     return internal[0], line_move(internal, targets)
 
 
-__all__ = ["absolute_target", "cyclic_target_reached", "install_rest", "limits", "line_move",
+__all__ = ["absolute_target", "cyclic_target_reached", "install_rest", "left_the_line",
+           "limits", "line_move",
            "plan_cyclic_line", "relative_target", "stop_cyclic", "wait_stopped"]

@@ -41,6 +41,7 @@ from ..motion.cyclic import CSV_MODE
 from ..motion.profile import VelocityRamp
 from ..tables.units import Scaling
 from .axis import AxisRuntime
+from .cyclic_moves import left_the_line
 
 
 def _velocity_factor(s: Scaling) -> float:
@@ -94,7 +95,8 @@ def velocity_move(axis: AxisRuntime) -> Callable[[], None]:
         ramp = VelocityRamp(sender.clock() + sender.cycle, start, signed * k * scaling.inversion,
                             acceleration * k, stop * k)
         axis.moving_ack = 0
-        sender.start((node,), ramp, max(deadline.time_left(), 10 * sender.cycle))
+        sender.start((node,), ramp, max(deadline.time_left(), 10 * sender.cycle),
+                     on_end=left_the_line([axis]))
         drive.require_enabled()  # the drive took the first set-points
         axis.moving_ack = 1
     return run

@@ -43,7 +43,7 @@ from .axis import AxisRuntime, Follower
 from .cyclic_moves import (absolute_target, line_move, plan_cyclic_line, relative_target,
                            stop_cyclic)
 from .cyclic_velocity import velocity_move
-from .writes import check_resolution
+from .writes import check_resolution, refuse_cyclic_coupling
 
 log = logging.getLogger("tcp_bridge.plan")
 
@@ -154,10 +154,12 @@ def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) ->
     master.need_drive()  # CAN for an axis without a drive
     if how == 8:
         return plan_stop(master)
+    slave = _slave(master, axes)
+    if slave is not None:  # a 29 from before the axis was cyclic (the state file)
+        refuse_cyclic_coupling(master.addr, slave.axis.addr, master.params.table.axes)
     if master.cyclic is not None:
         return _plan_cyclic_move(master, how)
     value = _value(master, how)
-    slave = _slave(master, axes)
     master_move = _what(master, how, 1, value)
     followers = (slave,) if slave is not None else ()
     moves: List[Tuple[AxisRuntime, Callable[[], Move]]] = [(master, master_move)]

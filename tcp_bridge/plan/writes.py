@@ -22,13 +22,14 @@ drive's identity (1018h/1) when the bridge has read it.
 from __future__ import annotations
 
 import logging
-from typing import Callable, FrozenSet, Final, List, Mapping, Optional, Tuple
+from typing import Any, Callable, FrozenSet, Final, List, Mapping, Optional, Tuple
 
 from ..bus.sdo import NodeSilent, object_type
 from ..cia402_words import MODES_DISPLAY, Mode
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import State, Why
 from ..motion.cyclic import CSP_MODE, CSV_MODE
+from ..motion.supervision import HEARTBEAT_OBJECTS, WATCHDOG_OBJECTS
 from ..tables.axes import DeviceCode, parameter_spec, to_stored
 from ..tables.commands import CommandSpec, ObjectRef, Quantity, SdoSelector
 from ..tables.units import Number, Scaling
@@ -102,6 +103,19 @@ def drive_writes(axis: AxisRuntime, n: int, user: Number,
     return writes
 
 
+def refuse_cyclic_coupling(master: int, slave: int, axes: Mapping[int, Any]) -> None:
+    """29 between axes where either is cyclic is CAN (issue 30 finding 3, **chosen**):
+    a cyclic axis moves on its bus's set-point lines only (:mod:`.cyclic_moves`), where
+    a slave would not follow; accepted, the master moved and the slave stayed at 0
+    (a gantry racks). docs/bridge.md says so."""
+    for addr, role in ((master, "master"), (slave, "slave")):
+        config = axes.get(addr)
+        if config is not None and config.cyclic is not None:
+            raise InvalidCommand(f"axis {addr} is cyclic ({config.cyclic!r}): it cannot be a "
+                                 f"{role} of 29 (a cyclic axis moves on its line alone; "
+                                 "use S90 for axes that move together)", cmd=29)
+
+
 def _parameter(r: Resolved) -> WritePlan:
     axis, n = r.axis, r.spec.number
     assert axis is not None and r.value is not None
@@ -109,6 +123,8 @@ def _parameter(r: Resolved) -> WritePlan:
     stored = to_stored(parameter_spec(n), value, axis.config.position_factor)
     if n == 29 and stored and (stored == axis.addr or stored not in axis.params.table.axes):
         raise InvalidCommand(f"slave axis {stored} is not another configured axis", cmd=29)
+    if n == 29 and stored:
+        refuse_cyclic_coupling(axis.addr, stored, axis.params.table.axes)
     if n == 80:
         SdoSelector.from_value(stored)  # length 1..4
     obj = axis.parameter_object(n)
@@ -153,6 +169,18 @@ def _device_code(r: Resolved) -> WritePlan:
     return _parameter(r)
 
 
+def supervision_objects(axis: AxisRuntime) -> FrozenSet[int]:
+    """The objects that make ``axis``'s drive stop when the bridge dies, which S81 never
+    writes (issue 30 finding 5): its heartbeat consumer's on a bus with ``heartbeat_ms``,
+    the watchdog reaction on EtherCAT (:mod:`tcp_bridge.motion.supervision`)."""
+    if axis.drive is not None and axis.drive.supervision is not None:
+        return HEARTBEAT_OBJECTS
+    bus = axis.params.table.buses.get(axis.config.bus)
+    if bus is not None and bus.backend == "ethercat":
+        return WATCHDOG_OBJECTS
+    return frozenset()
+
+
 def _sdo_access(r: Resolved) -> WritePlan:
     axis = r.axis
     assert axis is not None and r.value is not None
@@ -170,9 +198,20 @@ def _sdo_access(r: Resolved) -> WritePlan:
     raw = value - (1 << bits) if signed and value >= 1 << (bits - 1) else \
         value & ((1 << bits) - 1) if not signed else value
     guarded = selector.index in MOTION_OBJECTS
+    supervising = selector.index in supervision_objects(axis)
     drive = axis.drive
 
     def write_raw() -> None:
+        if supervising:
+            # Refused whatever the state: the bridge sets these up once per power-up
+            # (motion.supervision), so a value written now would still hold when the
+            # axis next moves, and a move would run that nothing stops if the bridge
+            # dies (issue 30: a velocity move outlived a SIGKILL after S81 to 1016h).
+            log.error("%s: S81 to 0x%04X/%d refused: it is the drive's supervision (what "
+                      "stops it when the bridge dies), which the bridge keeps as the bus "
+                      "table says", port.name, selector.index, selector.subindex)
+            raise DeviceFailure(f"{port.name}: 0x{selector.index:04X} is the drive's "
+                                "supervision: not written by S81")
         if guarded and drive is not None and drive.state() is State.OPERATION_ENABLED:
             log.error("%s: S81 to 0x%04X refused: the axis is enabled (it would power or "
                       "move it outside the motion rules)", port.name, selector.index)
