@@ -27,7 +27,14 @@ would undo a quick stop (CiA 402-2 transition 16; :class:`CanopenSetpoints`
 says more). A slave that is lost (out of OP) or a link that is down ends the
 run (a transport error, logged): the drive holds its last set-point or is in
 its own watchdog reaction, and a set-point stream must not resume behind it
-when the recovery brings the slave back to OP.
+when the recovery brings the slave back to OP. The backend also ends the runs of
+a slave the moment the cycle finds it out of OP (:meth:`CycleSender.end_node`),
+before any set-point of a later cycle is made.
+
+A slave whose drive left OPERATION ENABLED by itself (:mod:`.ethercat_hold`: its
+outputs follow the drive) gets no more set-points from a run: 607Ah stays equal
+to its actual position, 60FFh 0, whatever the run's line says, so that no jump
+waits for the next enable.
 """
 from __future__ import annotations
 
@@ -76,15 +83,21 @@ class EthercatSetpoints:
             if why is not None:
                 raise DeviceFailure(why)
 
+    def _held(self, node: int) -> bool:
+        hold = self.backend.hold
+        return hold is not None and hold.holding(node)
+
     def write_targets(self, targets: Mapping[int, int]) -> None:
         self._check(targets)
         for node, position in targets.items():
-            self.backend.node(node).cyclic_target(position)  # 607Ah only, never 6040h
+            if not self._held(node):  # a held drive's 607Ah follows its position
+                self.backend.node(node).cyclic_target(position)  # 607Ah only, never 6040h
 
     def write_velocities(self, velocities: Mapping[int, int]) -> None:
         self._check(velocities)
         for node, velocity in velocities.items():
-            self.backend.node(node).pdo_write(TARGET_VELOCITY, 0, velocity)  # 60FFh only
+            if not self._held(node):
+                self.backend.node(node).pdo_write(TARGET_VELOCITY, 0, velocity)  # 60FFh only
 
     def read_actual(self, nodes: Iterable[int]) -> Dict[int, int]:
         out: Dict[int, int] = {}
@@ -125,6 +138,19 @@ class CycleSender(CyclicSender):
 
     def alive(self) -> bool:
         return self._hooked and not self._stop.is_set()
+
+    def end_node(self, node: int, why: str) -> None:
+        """The slave of ``node`` dropped out of OP: every run it is in ends now (logged;
+        R82 then compares its position with the run's target)."""
+        with self._lock:
+            runs = [run for run in self._runs if node in run.nodes]
+            for run in runs:
+                run.failure = why
+                self._end(run)
+        if runs:
+            log.warning("bus %s: %s: the cyclic moves of nodes %s end here; no set-point "
+                        "follows when the slave is back", self.bus, why,
+                        sorted({n for run in runs for n in run.nodes}))
 
     def start(self, nodes: Any, line: Any, timeout: float) -> Any:
         if self._stop.is_set():
