@@ -123,6 +123,22 @@ def _map_error(exc: BaseException) -> str:
     return f"{where}: {type(exc).__name__} {getattr(exc, 'error_code', '')} {desc}".rstrip()
 
 
+# SOEM waits EC_TIMEOUTRET (2 ms) for each frame of a mailbox exchange or a state read.
+# CoE transfers now run beside the cycle (ethercat_cycle rule 1), so their frames share the
+# wire and the slaves with the process data; on a loaded host, or slaves that answer from
+# software (the simulator, on a veth pair), 2 ms is too short and a transfer fails with
+# "no answer" or a late reply to the next one ("unexpected frame"). 10 ms costs nothing
+# when frames come back, and a lost frame of a state check delays one cycle by it, far
+# below the slaves' watchdog. (pysoem.settings.timeouts, process-wide.)
+FRAME_TIMEOUT_US = 10_000
+
+
+def _frame_timeout(soem: Any) -> None:
+    timeouts = getattr(getattr(soem, "settings", None), "timeouts", None)
+    if timeouts is not None and int(timeouts.ret) < FRAME_TIMEOUT_US:
+        timeouts.ret = FRAME_TIMEOUT_US
+
+
 def _number(bus: str, key: str, value: Any, low: float, high: float) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
         raise ConfigError(f"bus {bus}: {key} must be a number {low:g}..{high:g}, not {value!r}")
@@ -182,6 +198,7 @@ class EthercatBackend:
         self.interface: str = opts["interface"]
         self.soem = soem if soem is not None else _pysoem()
         self.sdo_timeout: float = opts["sdo_timeout"]
+        _frame_timeout(self.soem)
         master = self.soem.Master()
         try:
             master.open(self.interface)

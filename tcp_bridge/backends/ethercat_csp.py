@@ -84,7 +84,7 @@ class EthercatSetpoints:
                 raise DeviceFailure(why)
 
     def _held(self, node: int) -> bool:
-        hold = self.backend.hold
+        hold = getattr(self.backend, "hold", None)
         return hold is not None and hold.holding(node)
 
     def write_targets(self, targets: Mapping[int, int]) -> None:

@@ -74,6 +74,7 @@ ERROR = ACK = 0x10
 STATE_NAMES = {NONE: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP",
                OP: "OP"}
 RECOVER_TIMEOUT_US = 2000  # SOEM EC_TIMEOUTRET: one exchange's wait
+SILENT_CHECKS = 3  # state reads in a row without an answer before a slave is lost (rule 3)
 LOCK_WAIT_LIMIT = 1.0  # s: the longest a transfer waits for a due cycle (cycle_lock)
 
 
@@ -159,7 +160,7 @@ class CycleLoop:
         self._armed: Dict[int, int] = {}  # position -> the check that found it in SAFEOP
         self._checks = 0
         self._frame_back = False  # the last cycle's frame came back
-        self._silent: set = set()  # positions a state read found silent once (NONE)
+        self._silent: Dict[int, int] = {}  # position -> state reads in a row without answer
         self._al_text = al_text
         self._clock = clock
         self._stop = threading.Event()
@@ -277,18 +278,19 @@ class CycleLoop:
             state = int(slave.state)
             if state == OP:
                 self._armed.pop(position, None)
-                self._silent.discard(position)
+                self._silent.pop(position, None)
                 if position in self.lost:
                     log.warning("ethercat: slave %d is back in OP", position)
                     del self.lost[position]  # after the log: a reader of lost sees both
                 continue
             self._check = True  # look again next cycle until every slave is in OP
-            if state == NONE and position not in self.lost and position not in self._silent:
-                # No answer to the state read (a frame lost on a loaded host) is not yet a
-                # drop-out: the next check must find it silent too.
-                self._silent.add(position)
-                continue
-            self._silent.discard(position)
+            if state == NONE and position not in self.lost:
+                # No answer to the state read (frames lost on a loaded host) is not yet a
+                # drop-out: SILENT_CHECKS checks in a row must find it silent.
+                self._silent[position] = self._silent.get(position, 0) + 1
+                if self._silent[position] < SILENT_CHECKS:
+                    continue
+            self._silent.pop(position, None)
             if position not in self.lost:
                 self.lost[position] = self.describe(position, state)
                 log.warning("ethercat: slave %d dropped out: %s", position, self.lost[position])

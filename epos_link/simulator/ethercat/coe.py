@@ -27,7 +27,8 @@ A mailbox message::
   slave), which makes SOEM's ``config_map`` misread the PDO assignment.
   **chosen**: a complete access download aborts with 0x06010000 "unsupported
   access" (no master of ours writes that way);
-* any failure answers an SDO abort (0x80, index, subindex, code: CiA 301
+* any failure answers an SDO abort (CoE service 2, "SDO request", as ETG.1000.6
+  5.6.2.7 has it; 0x80, index, subindex, code: CiA 301
   Table 22, guide Table 6-21); an unknown command aborts with 0x05040001.
 
 Other mailbox types, and CoE services other than SDO requests, answer a
@@ -144,7 +145,11 @@ class SdoServer:
             index, sub = (struct.unpack_from("<HB", sdo, 1) if len(sdo) >= 4 else (0, 0))
             if self._last is not None:
                 index, sub = self._last
-            reply = struct.pack("<BHBI", 0x80, index, sub, exc.code)
+            # ETG.1000.6 5.6.2.7 "Abort SDO Transfer": its CoE header names the service
+            # SDO *request* (2), not response; SOEM's ecx_SDOread takes an abort only so
+            # (a response of the same index is read as data: "data container too small").
+            return MBX_COE, struct.pack("<H", COE_SDO_REQUEST << 12) + struct.pack(
+                "<BHBI", 0x80, index, sub, exc.code)
         return MBX_COE, struct.pack("<H", COE_SDO_RESPONSE << 12) + reply
 
     def _sdo(self, sdo: bytes) -> bytes:

@@ -21,7 +21,11 @@ What the firmware behind the ESC does (guide chapter 4; ETG.1000.6):
 * process data: in SAFE-OP and OP the inputs (TxPDO, SM3) are sampled from the
   drive whenever the master reads them; only in OP are the outputs (RxPDO, SM2)
   written to the drive (guide Table 4-17: SAFE-OP "ignoring new setpoint
-  values"). An output object is written when its value differs from the last
+  values"). Outside OP the firmware deactivates SM2 through the PDI (ESC
+  register 0x0807 bit 0; the Beckhoff Slave Stack Code's ``StopOutputHandler``
+  on leaving OP), so the master's output write earns no working counter there:
+  a master sees a slave that left OP by its short working counter, as SOEM's
+  ``ecatcheck`` expects. An output object is written when its value differs from the last
   one written (the first cycle in OP writes all), except the controlword
   6040h, which is given to the drive with every frame: CiA 402-2 6.4.1 defines
   the device control commands by the controlword's value, so a drive that
@@ -111,6 +115,7 @@ class EthercatSlave:
         self._written: dict[tuple[int, int], bytes] = {}
         self.now = 0.0
         self._triggered = 0.0  # last SM2 write (process data watchdog)
+        self.esc.sm_deactivated[2] = True  # outputs only in OP (docstring)
         self.esc.on_write = self._on_write
         self.esc.on_sm_filled = self._on_sm_filled
         self.esc.on_sm_emptied = self._on_sm_emptied
@@ -250,6 +255,7 @@ class EthercatSlave:
 
     def _enter(self, target: AlState, keep_error: bool = False) -> None:
         self.state = target
+        self.esc.sm_deactivated[2] = target is not AlState.OP
         self.esc.set_u16(regs.AL_STATUS, target | (0x10 if keep_error else 0))
         if target is AlState.INIT:
             self._replies.clear()
