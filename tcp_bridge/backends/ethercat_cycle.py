@@ -43,6 +43,10 @@ Rules:
    actual values in SAFE-OP: guide Table 4-17) and the outputs that follow its
    drive were made from them; a slave still present in a lower state is
    ``reconfig()``-ured, one that vanished is ``recover()``-ed when it is back.
+   A state read that gets no answer (NONE) makes a slave lost only at the
+   :data:`SILENT_CHECKS`-th in a row: on a loaded host a frame comes back late
+   now and then, and a slave wrongly called lost would have its outputs follow
+   its drive and its cyclic run ended.
 4. **The link**: when no frame came back for ``link_cycles`` cycles in a row
    (``receive_processdata`` < 1: the cable, the card, every slave's power), the
    bus's device is silent (:attr:`CycleLoop.link_down`).
