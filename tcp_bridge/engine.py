@@ -112,9 +112,10 @@ class Engine:
                                debug=self._debug, health=self.guards[axis.bus].node(axis.node_id))
             self.axes[addr] = AxisRuntime(axis, self.params, port, timing, **cia402_options)
             if axis.cyclic is not None and port is not None and self.axes[addr].cyclic is None:
-                raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: cyclic: bus "
-                                  f"{axis.bus} cannot stream set-points (a canopen or ethercat bus, "
-                                  "or sim with link = \"can\", can)")
+                raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: an internal axis "
+                                  f"is moved in CSP, but bus {axis.bus} cannot stream set-points "
+                                  "(a canopen or ethercat bus, or sim with link = \"can\", can); "
+                                  "profile = \"drive\" keeps the drive's own profile modes")
             install_rest(self.axes[addr])  # a cyclic axis rests by its own profile
         self._workers: Dict[str, BusWorker] = {
             bus: BusWorker(bus, guard.maintain) for bus, guard in self.guards.items()}

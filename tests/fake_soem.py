@@ -4,12 +4,15 @@ It has pysoem's shape as far as the backend uses it (``Master``, its slaves, the
 exception classes, ``al_status_code_to_string``) and a minimal slave behind it:
 an object dictionary, a PDO mapping in 1C12h/1C13h/1600h/1A00h (controlword,
 mode and target position out; statusword and position in), the EtherCAT state,
-and a drop-out switch. Every pysoem call checks that no other thread is inside
-pysoem at the same time (:attr:`FakeMaster.overlaps` counts violations).
+and a drop-out switch. Every process-data and state call checks that no other
+thread is inside those at the same time (:attr:`FakeMaster.overlaps` counts
+violations); CoE transfers run beside them, as SOEM allows, and only count
+overlapping each other (:attr:`FakeMaster.mailbox_overlaps`).
 """
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any, Dict, List, Optional, Tuple
 
 INIT_STATE, PREOP_STATE, SAFEOP_STATE, OP_STATE, STATE_ERROR, STATE_ACK = 1, 2, 4, 8, 16, 16
@@ -32,6 +35,11 @@ class MailboxError(Exception):
     def __init__(self, slave_pos: int, error_code: int, desc: str):
         super().__init__(slave_pos, error_code, desc)
         self.slave_pos, self.error_code, self.desc = slave_pos, error_code, desc
+
+
+class ConfigMapError(Exception):
+    def __init__(self, error_list: List[Exception]):
+        self.error_list = error_list
 
 
 class PacketError(Exception):
@@ -63,6 +71,9 @@ class FakeSlave:
         self.al_status = 0
         self.present = True
         self.ca_used = False
+        self.complete_access = True  # the SII offers CA (pysoem: _disable_complete_access)
+        self.sdo_delay = 0.0  # seconds every CoE transfer takes (a slave that answers late)
+        self.ca_padding = True  # False: its CA answers leave out the padding byte (issue 31)
         self.recovered = 0
         self.resets = 0  # requests of INIT (the bridge's "NMT reset")
         self.od: Dict[Tuple[int, int], bytes] = {
@@ -77,7 +88,10 @@ class FakeSlave:
             (0x1A00, 2): mapping(0x6064, 0, 32).to_bytes(4, "little"),
             (0x6040, 0): b"\0\0", (0x6060, 0): b"\x01", (0x607A, 0): b"\0\0\0\0",
             (0x6041, 0): (0x0250).to_bytes(2, "little"), (0x6064, 0): (1234).to_bytes(4, "little"),
-            (0x6081, 0): (1000).to_bytes(4, "little"),
+            (0x6081, 0): (1000).to_bytes(4, "little"), (0x6061, 0): b"\x01",
+            (0x60FF, 0): bytes(4), (0x606C, 0): bytes(4), (0x6067, 0): (10).to_bytes(4, "little"),
+            (0x607D, 1): bytes(4), (0x6085, 0): bytes(4), (0x6065, 0): bytes(4),
+            (0x60FD, 0): bytes(4),
         }
         self._output = bytearray(7)
         self.received: List[bytes] = []  # every output image the slave got in OP
@@ -104,19 +118,36 @@ class FakeSlave:
             self.od[(0x6040, 0)] = bytes(self._output[0:2])
         return 3 if self.state == OP_STATE else 0
 
-    # mailbox
-    def sdo_read(self, index: int, subindex: int, size: int = 0, ca: bool = False) -> bytes:
-        with self._master.inside():
+    # mailbox: apart from the process data (SOEM's frame index buffers); transfers overlapping
+    # each other are counted in master.mailbox_overlaps
+    def _disable_complete_access(self) -> None:
+        self.complete_access = False
+
+    def eeprom_read(self, word: int, timeout: int = 20000) -> bytes:
+        raise WkcError("no SII in the fake", 0)
+
+    def sdo_read(self, index: int, subindex: int, size: int = 0, ca: bool = False, *,
+                 release_gil: Optional[bool] = None) -> bytes:
+        with self._master.mailbox():
             self.ca_used |= ca
+            if self.sdo_delay:
+                time.sleep(self.sdo_delay)
             if not self.present:
                 raise WkcError("no answer", 0)
             if (index, subindex) not in self.od:
                 raise SdoError(self.position, index, subindex, 0x06020000, "Object does not exist")
+            if ca:  # complete access: subindex 0 padded to 16 bits, then 1..n (ETG.1000.6)
+                count = self.od[(index, 0)][:1]
+                return count + b"\0" * self.ca_padding + b"".join(
+                    self.od[(index, n)] for n in range(1, count[0] + 1))
             return self.od[(index, subindex)]
 
-    def sdo_write(self, index: int, subindex: int, data: bytes, ca: bool = False) -> None:
-        with self._master.inside():
+    def sdo_write(self, index: int, subindex: int, data: bytes, ca: bool = False, *,
+                  release_gil: Optional[bool] = None) -> None:
+        with self._master.mailbox():
             self.ca_used |= ca
+            if self.sdo_delay:
+                time.sleep(self.sdo_delay)
             if not self.present:
                 raise WkcError("no answer", 0)
             if (index, subindex) == (0x1000, 0):
@@ -180,16 +211,22 @@ class DriveSlave(FakeSlave):
     def _map(self, key: Tuple[int, int]) -> bool:
         return key[0] in (0x1C12, 0x1C13, 0x1600, 0x1A00) or key in ((0x1018, 1), (0x1018, 2))
 
-    def sdo_read(self, index: int, subindex: int, size: int = 0, ca: bool = False) -> bytes:
+    def sdo_read(self, index: int, subindex: int, size: int = 0, ca: bool = False, *,
+                 release_gil: Optional[bool] = None) -> bytes:
         if self._map((index, subindex)):
             return super().sdo_read(index, subindex, size, ca)
-        with self._master.inside():
+        with self._master.mailbox():
             self.ca_used |= ca
+            if self.sdo_delay:
+                time.sleep(self.sdo_delay)
             return self._drive_sdo(lambda: self.drive.upload(index, subindex))
 
-    def sdo_write(self, index: int, subindex: int, data: bytes, ca: bool = False) -> None:
-        with self._master.inside():
+    def sdo_write(self, index: int, subindex: int, data: bytes, ca: bool = False, *,
+                  release_gil: Optional[bool] = None) -> None:
+        with self._master.mailbox():
             self.ca_used |= ca
+            if self.sdo_delay:
+                time.sleep(self.sdo_delay)
             self._drive_sdo(lambda: self.drive.download(index, subindex, bytes(data)))
 
     def _drive_sdo(self, transfer: Any) -> Any:
@@ -234,10 +271,27 @@ class FakeMaster:
         self.state = INIT_STATE
         self.sdo_read_timeout = self.sdo_write_timeout = 700000
         self.overlaps = 0
+        self.mailbox_overlaps = 0
+        self.config_maps = 0
+        self.fail_ca_map = False  # config_map fails while a slave uses CA (issue 31)
         self.closed = False
         self.link = True
         self._busy = threading.Lock()
+        self._mailbox = threading.Lock()
         type(self).instances.append(self)
+
+    def mailbox(self) -> Any:
+        master = self
+
+        class Transfer:
+            def __enter__(self) -> None:
+                if not master._mailbox.acquire(blocking=False):
+                    master.mailbox_overlaps += 1
+                    master._mailbox.acquire()
+
+            def __exit__(self, *exc: Any) -> None:
+                master._mailbox.release()
+        return Transfer()
 
     def inside(self) -> Any:
         master = self
@@ -265,6 +319,9 @@ class FakeMaster:
         return len(self.slaves) or -1
 
     def config_map(self) -> int:
+        self.config_maps += 1
+        if self.fail_ca_map and any(s.complete_access for s in self.slaves):
+            raise ConfigMapError([PacketError(1, 1)])  # issue 31, KickCAT's slave
         for s in self.slaves:
             s.state = SAFEOP_STATE
         return 11 * len(self.slaves)
@@ -291,12 +348,13 @@ class FakeMaster:
                     s.state = self.state
             return 1
 
-    def send_processdata(self) -> int:
+    def send_processdata(self, *, release_gil: Optional[bool] = None) -> int:
         with self.inside():
             self._wkc = sum(s.exchange() for s in self.slaves) if self.link else -1
             return 1
 
-    def receive_processdata(self, timeout: int = 2000) -> int:
+    def receive_processdata(self, timeout: int = 2000, *,
+                            release_gil: Optional[bool] = None) -> int:
         with self.inside():
             return self._wkc
 
@@ -308,6 +366,7 @@ class FakeSoem:
     """The module object given to the backend as ``soem=``."""
 
     SdoError, WkcError, MailboxError, PacketError = SdoError, WkcError, MailboxError, PacketError
+    ConfigMapError = ConfigMapError
 
     def __init__(self, count: int = 2, fail_open: bool = False, drives: bool = False) -> None:
         class Master(FakeMaster):

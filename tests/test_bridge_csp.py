@@ -242,9 +242,14 @@ def test_a_cyclic_bus_needs_heartbeat_ms() -> None:
 
 
 @pytest.mark.parametrize("axis,message", [
-    ({"internal": True, "cyclic": "csv"}, "'csv' is not one of 'csp'"),
+    ({"internal": True, "cyclic": "csv"}, "cyclic: str 'csv' is not a value of this key; an "
+     "internal axis is moved in CSP by default now: remove cyclic, or write profile"),
     ({"internal": False, "cyclic": "csp"}, "only an internal axis with a drive"),
-    ({"internal": True, "cyclic": 8}, "must be a string"),
+    ({"internal": False, "profile": "bridge"}, "only an internal axis with a drive"),
+    ({"internal": True, "cyclic": 8}, "cyclic: int 8 is not a value of this key"),
+    ({"internal": True, "profile": "csp"}, "profile: must be \"bridge\""),
+    ({"internal": True, "cyclic": "csp", "profile": "drive"}, "contradict"),
+    ({"internal": True, "position_window": -1}, "position_window: must be increments"),
 ])
 def test_the_cyclic_key_is_checked(axis: Dict[str, Any], message: str) -> None:
     with pytest.raises(ConfigError, match=message):
@@ -328,3 +333,27 @@ def test_a_quick_stop_from_elsewhere_is_not_undone_by_the_set_points(engine: Eng
         drive.drive.sync()
         assert abs(drive.drive.position - where) < FACTOR, (status, where, drive.drive.position)
         assert status is Status.ACK and drive.drive.state is State.OPERATION_ENABLED
+
+
+@pytest.mark.parametrize("keys,cyclic", [
+    ({"internal": True}, "csp"),  # PSI spec 3.2: internal = true alone (issue 31)
+    ({"internal": True, "cyclic": "csp"}, "csp"),  # the old key keeps working
+    ({"internal": True, "profile": "bridge"}, "csp"),
+    ({"internal": True, "profile": "drive"}, None),  # the opt-out: the drive's profile modes
+    ({"internal": False}, None),
+])
+def test_an_internal_axis_with_a_drive_is_moved_in_csp_unless_it_opts_out(
+        keys: Dict[str, Any], cyclic: Any) -> None:
+    t = AxisTable.from_mapping({
+        "bus": {"can1": {"backend": "sim"}},
+        "axis": [{"device": 5, "node_id": 2, "position_factor": FACTOR,
+                  "increments_per_revolution": 2000, **keys}]})
+    assert t.axes[1].cyclic == cyclic
+
+
+def test_position_window_is_read_from_the_table() -> None:
+    t = AxisTable.from_mapping({
+        "bus": {"can1": {"backend": "sim"}},
+        "axis": [{"device": 5, "node_id": 2, "internal": True, "position_window": 25,
+                  "position_factor": FACTOR, "increments_per_revolution": 2000}]})
+    assert t.axes[1].position_window == 25

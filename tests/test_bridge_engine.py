@@ -449,8 +449,8 @@ def test_slave_axis_follows_with_its_direction() -> None:
 
 def test_combined_move_90_moves_internal_axes() -> None:
     engine, nodes = make([
-        {"internal": True, "node_id": 1, "position_factor": 10},
-        {"internal": True, "node_id": 2, "position_factor": 10},
+        {"internal": True, "profile": "drive", "node_id": 1, "position_factor": 10},
+        {"internal": True, "profile": "drive", "node_id": 2, "position_factor": 10},
         {"node_id": 3},
     ])
     for axis in (1, 2):
@@ -816,8 +816,8 @@ def test_stop_halts_the_slave_even_when_the_master_is_absent() -> None:
 
 def test_combined_move_90_moves_nothing_when_one_axis_is_not_enabled() -> None:
     engine, nodes = make([
-        {"internal": True, "node_id": 1, "position_factor": 10},
-        {"internal": True, "node_id": 2, "position_factor": 10},
+        {"internal": True, "profile": "drive", "node_id": 1, "position_factor": 10},
+        {"internal": True, "profile": "drive", "node_id": 2, "position_factor": 10},
     ])
     first = enabled(engine, nodes, 1)  # axis 2 is NOT enabled
     ok(engine, "1S02=1")

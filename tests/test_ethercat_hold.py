@@ -82,15 +82,54 @@ def test_the_bridge_s_next_controlword_goes_out_as_written(
     assert cycle.cw == 0x010F
 
 
-def test_nothing_is_changed_before_the_drive_was_enabled_under_it() -> None:
-    """At start-up the image holds the drive's own controlword (seeded); a drive not
-    yet in OPERATION ENABLED is left to the bridge's enable sequence."""
+@pytest.mark.parametrize(("state", "held"), [
+    (State.QUICK_STOP_ACTIVE, 0x0102), (State.SWITCHED_ON, 0x0107),
+    (State.OPERATION_ENABLED, 0x010F), (State.FAULT, 0x0100)])
+def test_at_start_up_the_image_keeps_each_drive_where_it_is(state: State, held: int) -> None:
+    """Issue 31: a new bridge's image is not the dead one's "enable operation" (what an
+    SDO read of 6040h gives back): from the first inputs on, it keeps the state shown."""
     cycle = Cycle()
     hold = ControlwordHold(cycle, {1: LAYOUT})
-    cycle.write(0x000F)
+    cycle.write(0x000F)  # what the image might hold before the first inputs came
+    cycle.shows(state)
+    hold.check(0)
+    assert cycle.cw == held and hold.holding(1)
+    cycle.shows(State.FAULT)  # and it follows the drive down, never up
+    hold.check(1)
+    assert cycle.cw == 0x0100
+
+
+def test_a_client_s_controlword_ends_the_following() -> None:
+    cycle = Cycle()
+    hold = ControlwordHold(cycle, {1: LAYOUT})
     cycle.shows(State.SWITCHED_ON)
     hold.check(0)
-    assert cycle.cw == 0x000F
+    cycle.write(0x000F)  # a client's S04=1
+    hold.commanded(1)
+    hold.check(1)
+    assert cycle.cw == 0x000F and not hold.holding(1)
+
+
+def test_set_point_mode_and_velocity_follow_the_drive_until_written() -> None:
+    rx = {(0x6040, 0): Entry(0x6040, 0, 0, 2), (0x607A, 0): Entry(0x607A, 0, 2, 4),
+          (0x60FF, 0): Entry(0x60FF, 0, 6, 4), (0x6060, 0): Entry(0x6060, 0, 10, 1)}
+    tx = {(0x6041, 0): Entry(0x6041, 0, 0, 2), (0x6064, 0): Entry(0x6064, 0, 2, 4),
+          (0x6061, 0): Entry(0x6061, 0, 6, 1)}
+    cycle = Cycle()
+    cycle.outputs[1] = bytearray((0x000F).to_bytes(2, "little") + (4500).to_bytes(4, "little")
+                                 + (1000).to_bytes(4, "little") + b"\x09")
+    cycle.inputs[1] = (0x0017).to_bytes(2, "little") + (-250).to_bytes(4, "little", signed=True) \
+        + b"\x08"
+    hold = ControlwordHold(cycle, {1: Layout(rx, tx, 11, 7)})
+    hold.check(0)
+    image = bytes(cycle.outputs[1])
+    assert int.from_bytes(image[0:2], "little") == 0x0102  # QUICK STOP ACTIVE held
+    assert int.from_bytes(image[2:6], "little", signed=True) == -250  # 607Ah = 6064h
+    assert int.from_bytes(image[6:10], "little") == 0 and image[10] == 8  # 60FFh 0, 6060h = 6061h
+    cycle.outputs[1][2:6] = (7).to_bytes(4, "little")  # the bridge writes 607Ah for a move
+    hold.commanded(1, (0x607A, 0))
+    hold.check(1)
+    assert int.from_bytes(cycle.outputs[1][2:6], "little") == 7
 
 
 def test_slaves_without_6040h_out_or_6041h_in_are_left_alone() -> None:

@@ -140,6 +140,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "of a veth pair, the master on the other)")
     parser.add_argument("--slaves", type=_slave_count, default=1, metavar="N",
                         help="--ethercat: N drives in a line (default 1)")
+    parser.add_argument("--quirk", action="append", default=[], metavar="POS:NAME",
+                        help="--ethercat: make slave POS differ from a plain EPOS4: no-ca, "
+                             "ca-no-pad, no-XXXX (an object it lacks, e.g. no-6067), "
+                             "late=SECONDS (store/restore answered late); repeatable")
+    parser.add_argument("--events", metavar="FILE",
+                        help="--ethercat: append what each drive does in every cycle to FILE "
+                             "(JSON lines; for tests)")
     parser.add_argument("--serial", type=_serials, default=None, metavar="SN[,SN...]",
                         help="--usb: the USB serial number; several make several units "
                              "(default SIM00001)")
@@ -168,6 +175,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
     if getattr(args, "ethercat", None):
         return _run_ethercat(args, ready)
+    if getattr(args, "quirk", None) or getattr(args, "events", None):
+        print("epos-link sim: --quirk and --events apply to --ethercat only", file=sys.stderr)
+        return 2
     if getattr(args, "slaves", 1) != 1:
         print("epos-link sim: --slaves applies to --ethercat only", file=sys.stderr)
         return 2
@@ -342,11 +352,20 @@ def _run_ethercat(args: argparse.Namespace, ready: Optional[threading.Event]) ->
     """``--ethercat IFACE``: EtherCAT slaves on a raw socket (epos_link.simulator.ethercat)."""
     from ..simulator.ethercat.server import EthercatServer
 
+    from ..simulator.ethercat.quirks import QuirkError, parse_quirks
+
     if args.drives or args.serial or args.can_server or args.trace or args.baud:
-        print("epos-link sim: --ethercat takes only --slaves (and -v)", file=sys.stderr)
+        print("epos-link sim: --ethercat takes only --slaves, --quirk, --events (and -v)",
+              file=sys.stderr)
         return 2
     try:
-        server = EthercatServer(args.ethercat, slaves=args.slaves)
+        quirks = parse_quirks(args.quirk, args.slaves)
+    except QuirkError as exc:
+        print(f"epos-link sim: {exc}", file=sys.stderr)
+        return 2
+    try:
+        server = EthercatServer(args.ethercat, slaves=args.slaves, quirks=quirks,
+                                events=args.events)
     except PermissionError:
         print(f"epos-link sim: --ethercat {args.ethercat} needs root or CAP_NET_RAW "
               "(a raw packet socket)", file=sys.stderr)

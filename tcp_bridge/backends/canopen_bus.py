@@ -189,9 +189,10 @@ class CanopenBackend:
             raise ConfigError(f"bus {bus.name}: cycle_ms must be a number 1..1000, not "
                               f"{cycle_ms!r}")
         if self.cyclic_nodes and heartbeat is None:
-            raise ConfigError(f"bus {bus.name}: axes in a cyclic mode (cyclic = \"csp\") need "
+            raise ConfigError(f"bus {bus.name}: internal axes (moved in CSP, spec 3.2) need "
                               "heartbeat_ms: a drive in CSP holds its last set-point, and only "
-                              "its heartbeat consumer stops it when the bridge dies")
+                              "its heartbeat consumer stops it when the bridge dies; profile = "
+                              "\"drive\" keeps the drive's own profile modes")
         if self.cyclic_nodes and self.eds in (None, "none", ""):
             raise ConfigError(f"bus {bus.name}: cyclic axes need an EDS (eds = \"default\" or a "
                               "path), for the RPDO mapping 1402h/1602h")

@@ -27,7 +27,14 @@ would undo a quick stop (CiA 402-2 transition 16; :class:`CanopenSetpoints`
 says more). A slave that is lost (out of OP) or a link that is down ends the
 run (a transport error, logged): the drive holds its last set-point or is in
 its own watchdog reaction, and a set-point stream must not resume behind it
-when the recovery brings the slave back to OP.
+when the recovery brings the slave back to OP. The sender looks at
+:meth:`EthercatSetpoints.statuswords` before each cycle's set-points: a lost slave ends
+its part of the run and the rest of its line ramps down (:mod:`tcp_bridge.motion.cyclic`).
+
+A slave whose drive left OPERATION ENABLED by itself (:mod:`.ethercat_hold`: its
+outputs follow the drive) gets no more set-points from a run: 607Ah stays equal
+to its actual position, 60FFh 0, whatever the run's line says, so that no jump
+waits for the next enable.
 """
 from __future__ import annotations
 
@@ -77,15 +84,21 @@ class EthercatSetpoints:
             if why is not None:
                 raise DeviceFailure(why)
 
+    def _held(self, node: int) -> bool:
+        hold = getattr(self.backend, "hold", None)
+        return hold is not None and hold.holding(node)
+
     def write_targets(self, targets: Mapping[int, int]) -> None:
         self._check(targets)
         for node, position in targets.items():
-            self.backend.node(node).cyclic_target(position)  # 607Ah only, never 6040h
+            if not self._held(node):  # a held drive's 607Ah follows its position
+                self.backend.node(node).cyclic_target(position)  # 607Ah only, never 6040h
 
     def write_velocities(self, velocities: Mapping[int, int]) -> None:
         self._check(velocities)
         for node, velocity in velocities.items():
-            self.backend.node(node).pdo_write(TARGET_VELOCITY, 0, velocity)  # 60FFh only
+            if not self._held(node):
+                self.backend.node(node).pdo_write(TARGET_VELOCITY, 0, velocity)  # 60FFh only
 
     def statuswords(self, nodes: Iterable[int]) -> Dict[int, Seen]:
         """Each slave's statusword 6041h from this cycle's inputs (issue 30 finding 2,

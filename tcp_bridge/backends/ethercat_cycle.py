@@ -2,32 +2,51 @@
 
 Rules:
 
-1. **One lock for SOEM.** pysoem's master and slave objects are not documented
-   as thread-safe, and SOEM shares one frame index stack and one I/O map
-   between process data and mailbox. So every call into pysoem (a cycle's
-   send/receive, an SDO transfer, a state change, a recovery) holds
-   :attr:`CycleLoop.lock`; each holds it for one bounded exchange only.
-   An SDO transfer therefore delays the next cycle by its length: the backend
-   refuses an ``sdo_timeout`` that is not well below the slaves' process-data
-   watchdog, so a slow transfer can never trip it. The lock serves the cycle
-   first (:class:`~tcp_bridge.backends.cycle_lock.CycleLock`): a burst of
-   transfers delays a cycle by one transfer, not by the burst.
+1. **Two locks, and the process data never waits for the mailbox.** The
+   process data, the slaves' states and the images (a cycle's send/receive, a
+   state read or change, a write into the output image) hold
+   :attr:`CycleLoop.lock`, each for one bounded exchange. A CoE transfer (SDO
+   upload/download, of any length: an EPOS4 takes seconds to store its
+   parameters, 1010h) holds :attr:`CycleLoop.mailbox` instead, never the cycle's
+   lock, and releases the GIL while SOEM waits (pysoem ``release_gil=True``), so
+   the cycle runs on meanwhile. SOEM is made for that: each frame has its own
+   index, and a thread that receives another thread's frame files it in that
+   index's buffer (SOEM ``nicdrv.c`` ``ecx_getindex``/``ecx_inframe``, with their
+   mutexes), which is how SOEM's own ``simple_test`` runs ``ecatcheck`` beside
+   the cycle. The mailbox lock keeps one CoE transfer at a time (SOEM counts
+   mailbox sessions per slave) and the recovery's ``reconfig``/``recover``
+   (mailbox traffic of their own) out of a transfer: the cycle never waits for
+   it, a recovery step finding it busy is tried at the next check. The cycle
+   lock serves the cycle first (:class:`~tcp_bridge.backends.cycle_lock.CycleLock`):
+   a burst of image writes delays a cycle by one write, not by the burst.
 2. **The cycle** (:meth:`CycleLoop.step`, every ``cycle_ms`` on its own thread):
    cycle hooks run (a CSP set-point generator writes its next target), the output
    images are copied into the I/O map, ``send_processdata`` /
-   ``receive_processdata``, the input images are copied out, and the working
-   counter is compared with ``expected_wkc``. Deadlines are absolute (the
-   next cycle is due one period after the last one was due), so jitter does not
-   accumulate; a cycle that starts more than a period late is an *overrun*
-   and the schedule restarts from now rather than bursting to catch up.
+   ``receive_processdata`` (GIL released), the input images are copied out,
+   the working counter is compared with ``expected_wkc``, and then the *input
+   hooks* run on the inputs of this very cycle (:mod:`.ethercat_hold`: the
+   outputs that follow the drive), before a state check and before the next
+   send. Deadlines are absolute (the next cycle is due one period after the
+   last one was due), so jitter does not accumulate; a cycle that starts more
+   than a period late is an *overrun* and the schedule restarts from now rather
+   than bursting to catch up.
 3. **Drop-out** (as SOEM's ``simple_test`` ``ecatcheck``): a short working
    counter, or a slave seen out of OP, makes the loop read every slave's state
    (AL status register, ETG.1000.6 6.4.1). A slave not in OP is *lost*: its
    node answers every transfer at once with the AL status code and its text
-   (a silent node, as on CAN, :mod:`tcp_bridge.bus.health`). The recovery, on
-   the cycle thread between cycles, one step per check: SAFEOP+ERROR is
-   acknowledged, SAFEOP is asked for OP, a slave still present is
+   (a silent node, as on CAN, :mod:`tcp_bridge.bus.health`), and ``on_lost``
+   tells the backend (its outputs follow the drive from then on, its cyclic
+   run ends). The recovery, on the cycle thread between cycles, one step per
+   check: SAFEOP+ERROR is acknowledged; a slave in SAFEOP is asked for OP only
+   at the second check in a row that finds it there, so that the inputs of
+   the cycle just before came from the slave in SAFE-OP (the EPOS4 sends
+   actual values in SAFE-OP: guide Table 4-17) and the outputs that follow its
+   drive were made from them; a slave still present in a lower state is
    ``reconfig()``-ured, one that vanished is ``recover()``-ed when it is back.
+   A state read that gets no answer (NONE) makes a slave lost only at the
+   :data:`SILENT_CHECKS`-th in a row: on a loaded host a frame comes back late
+   now and then, and a slave wrongly called lost would have its outputs follow
+   its drive and its cyclic run ended.
 4. **The link**: when no frame came back for ``link_cycles`` cycles in a row
    (``receive_processdata`` < 1: the cable, the card, every slave's power), the
    bus's device is silent (:attr:`CycleLoop.link_down`).
@@ -59,6 +78,7 @@ ERROR = ACK = 0x10
 STATE_NAMES = {NONE: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP",
                OP: "OP"}
 RECOVER_TIMEOUT_US = 2000  # SOEM EC_TIMEOUTRET: one exchange's wait
+SILENT_CHECKS = 3  # state reads in a row without an answer before a slave is lost (rule 3)
 LOCK_WAIT_LIMIT = 1.0  # s: the longest a transfer waits for a due cycle (cycle_lock)
 
 
@@ -138,6 +158,13 @@ class CycleLoop:
         # expected then, and not a drop-out (set by the backend when opening ends).
         self.supervise = False
         self._hooks: List[Hook] = []
+        self.input_hooks: List[Hook] = []  # rule 2: on the inputs of this cycle
+        self.on_lost: Callable[[int, str], None] = lambda position, why: None
+        self.mailbox = threading.Lock()  # rule 1: one CoE transfer at a time
+        self._armed: Dict[int, int] = {}  # position -> the check that found it in SAFEOP
+        self._checks = 0
+        self._frame_back = False  # the last cycle's frame came back
+        self._silent: Dict[int, int] = {}  # position -> state reads in a row without answer
         self._al_text = al_text
         self._clock = clock
         self._stop = threading.Event()
@@ -204,11 +231,19 @@ class CycleLoop:
                     self._hooks.remove(hook)
             for position, slave in self.slaves.items():
                 slave.output = bytes(self.outputs[position])
-            self.master.send_processdata()
-            wkc = int(self.master.receive_processdata(2000))
+            self.master.send_processdata(release_gil=True)
+            wkc = int(self.master.receive_processdata(2000, release_gil=True))
             for position, slave in self.slaves.items():
                 self.inputs[position] = bytes(slave.input)
             self._account(wkc)
+            self._frame_back = wkc > 0
+            if wkc > 0:
+                for hook in list(self.input_hooks):
+                    try:
+                        hook(count)
+                    except Exception:
+                        log.exception("ethercat input hook %r failed: removed", hook)
+                        self.input_hooks.remove(hook)
             if self.supervise and (self._check or wkc < int(self.master.expected_wkc)):
                 self._check_states()
         with self.fresh:
@@ -242,18 +277,29 @@ class CycleLoop:
     def _check_states(self) -> None:
         self.master.read_state()
         self._check = False
+        self._checks += 1
         for position, slave in self.slaves.items():
             state = int(slave.state)
             if state == OP:
+                self._armed.pop(position, None)
+                self._silent.pop(position, None)
                 if position in self.lost:
-                    del self.lost[position]
                     log.warning("ethercat: slave %d is back in OP", position)
+                    del self.lost[position]  # after the log: a reader of lost sees both
                 continue
             self._check = True  # look again next cycle until every slave is in OP
+            if state == NONE and position not in self.lost:
+                # No answer to the state read (frames lost on a loaded host) is not yet a
+                # drop-out: SILENT_CHECKS checks in a row must find it silent.
+                self._silent[position] = self._silent.get(position, 0) + 1
+                if self._silent[position] < SILENT_CHECKS:
+                    continue
+            self._silent.pop(position, None)
             if position not in self.lost:
                 self.lost[position] = self.describe(position, state)
                 log.warning("ethercat: slave %d dropped out: %s", position, self.lost[position])
-            self._recover(slave, state)
+                self.on_lost(position, self.lost[position])
+            self._recover(position, slave, state)
 
     def describe(self, position: int, state: Optional[int] = None) -> str:
         slave = self.slaves[position]
@@ -264,15 +310,28 @@ class CycleLoop:
             why += f", AL status 0x{code:04X} {self._al_text(code)}"
         return why
 
-    def _recover(self, slave: Any, state: int) -> None:
+    def _recover(self, position: int, slave: Any, state: int) -> None:
+        if state != SAFEOP:
+            self._armed.pop(position, None)
         if state == SAFEOP | ERROR:
             slave.state = SAFEOP | ACK
             slave.write_state()
         elif state == SAFEOP:
-            slave.state = OP
-            slave.write_state()
-        elif state > NONE:
-            if slave.reconfig(RECOVER_TIMEOUT_US) >= SAFEOP:  # back to SAFEOP: OP next check
-                self._check = True
-        elif slave.recover(RECOVER_TIMEOUT_US) > 0:  # a slave that vanished is back
-            self._check = True
+            # Rule 3: OP only at the second check in a row in SAFEOP, so that the inputs
+            # the input hooks just used came from the slave in SAFE-OP.
+            if self._armed.get(position) == self._checks - 1 and self._frame_back:
+                slave.state = OP
+                slave.write_state()
+            else:
+                self._armed[position] = self._checks
+        elif not self.mailbox.acquire(blocking=False):
+            return  # a CoE transfer is running (rule 1): the next check tries again
+        else:
+            try:
+                if state > NONE:
+                    if slave.reconfig(RECOVER_TIMEOUT_US) >= SAFEOP:  # SAFEOP: OP later
+                        self._check = True
+                elif slave.recover(RECOVER_TIMEOUT_US) > 0:  # a slave that vanished is back
+                    self._check = True
+            finally:
+                self.mailbox.release()

@@ -17,6 +17,18 @@ from . import ethercat_pdo as pdo
 from .ethercat_cycle import INIT
 
 
+# The longest a transfer waits for another one to finish, beyond its own sdo_timeout
+# (a store of parameters, 1010h, takes seconds on an EPOS4).
+MAILBOX_WAIT = 10.0
+
+
+def _desc(exc: BaseException) -> str:
+    try:  # pysoem's PacketError.desc is a lookup that raises KeyError for unknown codes
+        return str(getattr(exc, "desc", ""))
+    except Exception:
+        return ""
+
+
 class SlaveUnreachable(SdoCommunicationError):  # type: ignore[misc]
     """The slave is lost or out of OP, or its mailbox gave no answer: a silent node."""
 
@@ -65,8 +77,8 @@ class EthercatNode:
             entry = layout.outputs[(index, subindex)]
             with cycle.lock:
                 return bytes(cycle.outputs[self.id][entry.offset:entry.offset + entry.size])
-        with cycle.lock:
-            return bytes(self._mailbox(lambda: slave.sdo_read(index, subindex, ca=False)))
+        return bytes(self._mailbox(lambda: slave.sdo_read(index, subindex, ca=False,
+                                                         release_gil=True)))
 
     def download(self, index: int, subindex: int, data: bytes,
                  force_segment: bool = False) -> None:
@@ -78,18 +90,22 @@ class EthercatNode:
                 raise SdoAbortedError(0x06070010)
             with cycle.lock:
                 pdo.put(cycle.outputs[self.id], entry, bytes(data))
-                if (index, subindex) == (0x6040, 0) and self._bus.hold is not None:
-                    self._bus.hold.commanded(self.id)  # sent as written (ethercat_hold)
+                if self._bus.hold is not None:
+                    self._bus.hold.commanded(self.id, (index, subindex))  # ethercat_hold
             if not cycle.wait_cycles(2, self._bus.sdo_timeout + 10 * cycle.period):
                 raise SlaveUnreachable(f"slave {self.id}: no process-data cycle carried it")
             self._reachable()
             return
-        with cycle.lock:
-            self._mailbox(lambda: slave.sdo_write(index, subindex, bytes(data), ca=False))
+        self._mailbox(lambda: slave.sdo_write(index, subindex, bytes(data), ca=False,
+                                              release_gil=True))
 
     def _mailbox(self, transfer: Callable[[], Any]) -> Any:
-        """A CoE transfer; pysoem's errors become the backend's (module docstring)."""
-        soem = self._bus.soem
+        """A CoE transfer, under the mailbox lock, not the cycle's (:mod:`.ethercat_cycle`
+        rule 1); pysoem's errors become the backend's (module docstring)."""
+        soem, cycle = self._bus.soem, self._bus.cycle
+        if not cycle.mailbox.acquire(timeout=MAILBOX_WAIT + self._bus.sdo_timeout):
+            raise SlaveUnreachable(f"slave {self.id}: the mailbox stayed busy with another "
+                                   f"transfer for {MAILBOX_WAIT + self._bus.sdo_timeout:g} s")
         try:
             return transfer()
         except soem.SdoError as exc:
@@ -101,7 +117,9 @@ class EthercatNode:
         except (soem.MailboxError, soem.PacketError) as exc:
             raise SlaveUnreachable(f"slave {self.id}: mailbox error "
                                    f"{getattr(exc, 'error_code', '?')} "
-                                   f"{getattr(exc, 'desc', '')}".rstrip()) from exc
+                                   f"{_desc(exc)}".rstrip()) from exc
+        finally:
+            cycle.mailbox.release()
 
     # -- cyclic set-points (module docstring, "Cyclic set-points") ------------------------
 
@@ -115,6 +133,8 @@ class EthercatNode:
         data = int(value).to_bytes(entry.size, "little", signed=object_type(index, subindex)[1])
         with self._bus.cycle.lock:
             pdo.put(self._bus.cycle.outputs[self.id], entry, data)
+            if self._bus.hold is not None:
+                self._bus.hold.commanded(self.id, (index, subindex))  # ethercat_hold
 
     def cyclic_target(self, position: int) -> None:
         """The CSP set-point of this cycle: target position 607Ah in the outputs."""

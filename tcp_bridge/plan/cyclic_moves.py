@@ -32,9 +32,11 @@ from typing import Callable, List, Optional, Sequence, Tuple
 from epos_link.cia402 import State
 
 from ..cia402_words import MODES_DISPLAY, Cw, Deadline
+from ..bus.sdo import NodeSilent
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion.cyclic import CSP_MODE, CyclicSender
 from ..motion.profile import AxisLimits, VelocityRamp, plan_line
+from ..tables.axes import DEFAULT_POSITION_WINDOW
 from .axis import AxisRuntime
 
 log = logging.getLogger("tcp_bridge.plan")
@@ -199,9 +201,24 @@ def cyclic_target_reached(axis: AxisRuntime) -> Callable[[], int]:
             return int(port.read(VELOCITY_ACTUAL, 0) == 0)
         index = run.nodes.index(axis.config.node_id)
         target = round(run.line.targets[index])
-        window = port.read(POSITION_WINDOW, 0)
-        return int(abs(port.read(POSITION_ACTUAL, 0) - target) <= window)
+        return int(abs(port.read(POSITION_ACTUAL, 0) - target) <= position_window(axis))
     return read
+
+
+def position_window(axis: AxisRuntime) -> int:
+    """6067h, or the axis table's position_window when the drive has none (CiA 402-2
+    leaves 6067h optional for CSP; issue 31): the object's absence (SDO abort 06020000h
+    "object does not exist") is not a failure of R82."""
+    try:
+        return int(axis.need_port().read(POSITION_WINDOW, 0))
+    except NodeSilent:
+        raise
+    except DeviceFailure as exc:
+        if exc.code not in (0x06020000, 0x06090011):
+            raise
+    window = axis.config.position_window
+    return DEFAULT_POSITION_WINDOW if window is None else window
+
 
 
 def plan_cyclic_line(internal: Sequence[AxisRuntime], how: int) -> Tuple[AxisRuntime,

@@ -139,10 +139,15 @@ class AxisConfig:
     # quadrature (4 x 3010h/01h pulses); velocities are rpm (tcp_bridge.tables.units).
     increments_per_revolution: Optional[int] = None
     # Spec 3.2 internal axis whose profile the bridge computes: "csp" (cyclic synchronous
-    # position, streamed by tcp_bridge.motion.cyclic); None: the drive's own profile modes.
+    # position, streamed by tcp_bridge.motion.cyclic; CSV for velocity moves); None: the
+    # drive's own profile modes. An axis table gives it with internal = true alone (a
+    # drive: node_id set); profile = "drive" opts out (tables.config).
     cyclic: Optional[str] = None
     # The EPICS motor record's name after the prefix (tcp_bridge.epics); None: m<AxAddr>.
     epics_name: Optional[str] = None
+    # R82 of a cyclic axis whose drive has no position window 6067h (optional in CiA 402-2
+    # for CSP): this window, in increments; None: DEFAULT_POSITION_WINDOW.
+    position_window: Optional[int] = None
 
     @property
     def bus(self) -> str:
@@ -268,6 +273,10 @@ def _validate(table: AxisTable) -> None:
 
 
 CYCLIC_MODES: Final = ("csp",)
+PROFILES: Final = ("bridge", "drive")  # the axis key profile (tables.config)
+# The position window of an axis whose drive has no 6067h, in increments: the EPOS4's
+# own default of 6067h (epos4.eds, DefaultValue=10).
+DEFAULT_POSITION_WINDOW: Final = 10
 
 
 def _validate_cyclic(table: AxisTable) -> None:
@@ -281,7 +290,8 @@ def _validate_cyclic(table: AxisTable) -> None:
                               f"{', '.join(repr(m) for m in CYCLIC_MODES)}")
         if not axis.internal or not axis.has_node:
             raise ConfigError(f"{where}: only an internal axis with a drive (internal = true, "
-                              "node_id set) is moved by the bridge's own profile (spec 3.2)")
+                              "node_id set) is moved by the bridge's own profile (spec 3.2); "
+                              "remove profile/cyclic from this axis")
     if not cyclic:
         return
     # Chosen: command 90 moves all internal axes with a drive on one line, through one
@@ -289,9 +299,10 @@ def _validate_cyclic(table: AxisTable) -> None:
     driven = [a for a in table.internal_axes if a.has_node]
     plain = [a.addr for a in driven if a.cyclic is None]
     if plain:
-        raise ConfigError(f"{src}: [[axis]] AxAddr {plain[0]}: cyclic: the internal axes "
-                          f"{[a.addr for a in cyclic]} are cyclic, so every internal axis with "
-                          "a drive must be (command 90 moves them on one line)")
+        raise ConfigError(f"{src}: [[axis]] AxAddr {plain[0]}: profile: the internal axes "
+                          f"{[a.addr for a in cyclic]} are moved in CSP by the bridge, so every "
+                          "internal axis with a drive must be (command 90 moves them on one "
+                          "line): write profile = \"drive\" on all of them, or on none")
     buses = sorted({a.bus for a in cyclic})
     if len(buses) > 1:
         raise ConfigError(f"{src}: [[axis]] cyclic: the cyclic internal axes are on buses "

@@ -27,7 +27,7 @@ from types import MappingProxyType
 from typing import Any, Dict, Iterable, Mapping, Optional
 
 from ..access import parse_network
-from .axes import (BUS_NAMES, DEVICE_NAMES, IPR_KEY, PARAMETER_NAMES, PARAMETER_NUMBERS,
+from .axes import (BUS_NAMES, DEVICE_NAMES, IPR_KEY, PROFILES, PARAMETER_NAMES, PARAMETER_NUMBERS,
                    AxisConfig, AxisTable, BusConfig, BusOffset, ConfigError, DeviceCode,
                    Settings, parameter_spec, to_stored)
 from ..errors import InvalidCommand
@@ -41,7 +41,7 @@ else:  # pragma: no cover - exercised on 3.10 only
 
 TOP_LEVEL = ("bridge", "bus", "axis", "epics")
 AXIS_KEYS = ("addr", "device", "internal", "bus_offset", "node_id", "position_factor",
-             "parameters", IPR_KEY, "cyclic", "epics_name")
+             "parameters", IPR_KEY, "profile", "cyclic", "position_window", "epics_name")
 EPICS_KEYS = ("prefix",)  # [epics]: tcp_bridge.epics
 # [bridge] keys: (check, description) by name; state_file and allow are special.
 POSITIVE = ("ack_timeout", "state_timeout", "reset_timeout", "idle_timeout", "probe_interval")
@@ -243,16 +243,45 @@ def _axis(row: Dict[str, Any], position: int, where: str) -> AxisConfig:
     params = _parameters(_table(row.get("parameters", {}), f"{where}: parameters",
                                 " (write [axis.parameters] below the [[axis]] it belongs to)"),
                          factor, where)
-    cyclic = row.get("cyclic")
-    if cyclic is not None and not isinstance(cyclic, str):
-        raise ConfigError(f"{where}: cyclic: must be a string (\"csp\"), not {_shown(cyclic)}")
+    cyclic = _profile(row, internal, node_id, where)
+    window = row.get("position_window")
+    if window is not None and (not _integer(window) or not 0 <= window <= 0xFFFFFFFF):
+        raise ConfigError(f"{where}: position_window: must be increments 0..4294967295, not "
+                          f"{_shown(window)}")
     epics_name = row.get("epics_name")
     if epics_name is not None:
         from ..epics.names import check_part  # pure
 
         check_part(epics_name, f"{where}: epics_name")
     return AxisConfig(addr, DeviceCode(device), internal, BusOffset(bus_offset), node_id, factor,
-                      MappingProxyType(params), ipr, cyclic, epics_name)
+                      MappingProxyType(params), ipr, cyclic, epics_name, position_window=window)
+
+
+def _profile(row: Dict[str, Any], internal: bool, node_id: Any, where: str) -> Optional[str]:
+    """PSI spec 3.2: an internal axis with a drive is moved by the bridge's profile in CSP
+    (CSV for velocity moves) unless ``profile = "drive"`` keeps the drive's own profile
+    modes. The key of issue 26, ``cyclic = "csp"``, still means "bridge"."""
+    profile = row.get("profile")
+    if profile is not None and profile not in PROFILES:
+        raise ConfigError(f"{where}: profile: must be \"bridge\" (CSP/CSV, the default of an "
+                          f"internal axis with a drive) or \"drive\" (its own profile modes), "
+                          f"not {_shown(profile)}")
+    if "cyclic" in row:
+        cyclic = row["cyclic"]
+        if cyclic != "csp":
+            raise ConfigError(f"{where}: cyclic: {_shown(cyclic)} is not a value of this key; "
+                              "an internal axis is moved in CSP by default now: remove cyclic, "
+                              "or write profile = \"drive\" for the drive's own profile modes")
+        if profile == "drive":
+            raise ConfigError(f"{where}: cyclic = \"csp\" and profile = \"drive\" contradict "
+                              "each other: keep one (cyclic is the old name of profile = "
+                              "\"bridge\")")
+        return "csp"  # checked against internal/node_id with the table (axes._validate_cyclic)
+    if profile == "bridge":
+        return "csp"
+    if profile is None and internal and node_id != 0:
+        return "csp"
+    return None
 
 
 def _parameters(raw: Dict[str, Any], factor: int, where: str) -> Dict[int, Number]:

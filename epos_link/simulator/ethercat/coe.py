@@ -17,10 +17,19 @@ A mailbox message::
   four bytes), normal (0x21 + size + data) and download segments (toggle |
   (7 - n) << 1 | last, 0x20 | toggle answers); the object is written when all
   bytes are there;
-* any failure answers an SDO abort (0x80, index, subindex, code: CiA 301
-  Table 22, guide Table 6-21). **chosen**: complete access (bit 4) aborts with
-  0x06010000 "unsupported access" (not simulated), and so does an unknown
-  command 0x05040001.
+* complete access upload (command 0x50, bit 4 "complete access", ETG.1000.6
+  5.6.2.1.1 and 5.6.2.2.1; the EPOS4 offers it: guide Table 4-16 "SDO Complete
+  Access"): subindex 0 or 1 to the object's subindex 0 value, all subindices in
+  one transfer: subindex 0 as 16 bits (the 8-bit count and a padding byte, as
+  SOEM's ``ec_PDOassignt``/``ec_PDOdesct``/``ec_SMcommtypet`` read it: ``uint8 n;
+  uint8 nu1;``), then subindices 1..n, each in its own size. ``ca_padding=False``
+  leaves the padding byte out, as some slave stacks do (issue 31: a KickCAT
+  slave), which makes SOEM's ``config_map`` misread the PDO assignment.
+  **chosen**: a complete access download aborts with 0x06010000 "unsupported
+  access" (no master of ours writes that way);
+* any failure answers an SDO abort (CoE service 2, "SDO request", as ETG.1000.6
+  5.6.2.7 has it; 0x80, index, subindex, code: CiA 301
+  Table 22, guide Table 6-21); an unknown command aborts with 0x05040001.
 
 Other mailbox types, and CoE services other than SDO requests, answer a
 mailbox error (type 0, ETG.1000.6 Table 29: 0x0002 unsupported protocol,
@@ -103,9 +112,11 @@ class SdoServer:
     """Answers mailbox messages (type and data) with one reply each; keeps the state
     of one segmented transfer. ``mailbox_size`` is the SM1 (send) mailbox size."""
 
-    def __init__(self, objects: ObjectAccess, mailbox_size: int) -> None:
+    def __init__(self, objects: ObjectAccess, mailbox_size: int, *,
+                 ca_padding: bool = True) -> None:
         self.objects = objects
         self.mailbox_size = mailbox_size
+        self.ca_padding = ca_padding
         self._upload: Optional[tuple[int, int, bytes, int]] = None  # index, sub, data, toggle
         self._download: Optional[tuple[int, int, int, bytearray, int]] = None  # + size, toggle
         self._last: Optional[tuple[int, int]] = None  # the object of a running segmented transfer
@@ -134,7 +145,11 @@ class SdoServer:
             index, sub = (struct.unpack_from("<HB", sdo, 1) if len(sdo) >= 4 else (0, 0))
             if self._last is not None:
                 index, sub = self._last
-            reply = struct.pack("<BHBI", 0x80, index, sub, exc.code)
+            # ETG.1000.6 5.6.2.7 "Abort SDO Transfer": its CoE header names the service
+            # SDO *request* (2), not response; SOEM's ecx_SDOread takes an abort only so
+            # (a response of the same index is read as data: "data container too small").
+            return MBX_COE, struct.pack("<H", COE_SDO_REQUEST << 12) + struct.pack(
+                "<BHBI", 0x80, index, sub, exc.code)
         return MBX_COE, struct.pack("<H", COE_SDO_RESPONSE << 12) + reply
 
     def _sdo(self, sdo: bytes) -> bytes:
@@ -146,8 +161,10 @@ class SdoServer:
                 raise SdoAbort(ABORT_COMMAND)
             index, sub = struct.unpack_from("<HB", sdo, 1)
             self._upload = self._download = None
-            if command & 0x10:
-                raise SdoAbort(ABORT_UNSUPPORTED)  # complete access
+            if command & 0x10:  # complete access
+                if ccs == 1 or sub > 1:
+                    raise SdoAbort(ABORT_UNSUPPORTED)
+                return self._send_value(index, sub, self._complete(index, sub))
             return self._initiate_upload(index, sub) if ccs == 2 else \
                 self._initiate_download(command, index, sub, sdo)
         if ccs == 3:
@@ -175,8 +192,22 @@ class SdoServer:
         except Exception as exc:
             raise SdoAbort(_code(exc)) from None
 
+    def _complete(self, index: int, first: int) -> bytes:
+        """The object's subindices ``first``..n in one buffer (module docstring)."""
+        count = self._call_read(index, 0)[:1]
+        if not count:
+            raise SdoAbort(ABORT_UNSUPPORTED)
+        out = bytearray()
+        if first == 0:
+            out += count + (b"\x00" if self.ca_padding else b"")
+        for sub in range(1, count[0] + 1):
+            out += self._call_read(index, sub)
+        return bytes(out)
+
     def _initiate_upload(self, index: int, sub: int) -> bytes:
-        value = self._call_read(index, sub)
+        return self._send_value(index, sub, self._call_read(index, sub))
+
+    def _send_value(self, index: int, sub: int, value: bytes) -> bytes:
         if 0 < len(value) <= 4:
             return struct.pack("<BHB", 0x43 | ((4 - len(value)) << 2), index, sub) + value.ljust(4, b"\x00")
         first = value[:self._room - 7]  # after index(2), subindex(1), size(4)

@@ -80,6 +80,9 @@ class Esc:
         self.memory = bytearray(MEMORY_SIZE)
         self.eeprom = eeprom
         self.mailbox_full = [False] * SM_COUNT
+        # The PDI's "deactivate SyncManager" (ESC register 0x0807 + 8n, bit 0): a master
+        # write into a deactivated SM's buffer is refused (no working counter).
+        self.sm_deactivated = [False] * SM_COUNT
         self.on_write: Callable[[int, int], None] = lambda first, last: None
         self.on_sm_filled: Callable[[int], None] = lambda n: None
         self.on_sm_emptied: Callable[[int], None] = lambda n: None
@@ -171,6 +174,8 @@ class Esc:
         sms = self._overlapping_sms(address, last)
         for n, _start, _end, control in sms:
             if control & 0x03 == 0x02 and control & 0x04 and self.mailbox_full[n]:
+                return False
+            if self.sm_deactivated[n]:
                 return False
         for offset, byte in enumerate(data):
             if _MASK[address + offset]:

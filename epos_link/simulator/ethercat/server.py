@@ -9,18 +9,26 @@ master opens the other end. Between frames the thread wakes every
 
 Needs root or CAP_NET_RAW; :func:`open_socket` raises ``PermissionError`` or
 ``OSError`` (no such interface) for the CLI to report.
+
+``quirks`` make single slaves differ (:mod:`.quirks`); ``events`` (a path)
+receives one JSON object per line for what each drive did in every cycle
+(:class:`~.drive_app.EthercatDrive`, ``on_event``), flushed at once, so that a
+test in another process sees every cycle of a drive, not only what a master
+polls.
 """
 from __future__ import annotations
 
+import json
 import logging
 import select
 import socket
 import threading
 import time
-from typing import Callable, Optional
+from typing import IO, Any, Callable, Dict, Mapping, Optional
 
 from .drive_app import EthercatDrive
 from .frame import ETHERTYPE
+from .quirks import Quirks
 from .segment import Segment
 
 __all__ = ["EthercatServer", "open_socket", "TICK"]
@@ -43,12 +51,17 @@ class EthercatServer:
     """``slaves`` simulated drives in a line on ``interface``; :meth:`close` stops it."""
 
     def __init__(self, interface: str, slaves: int = 1,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, *,
+                 quirks: Optional[Mapping[int, Quirks]] = None,
+                 events: Optional[str] = None) -> None:
         if not 1 <= slaves <= 64:
             raise ValueError("1..64 slaves")
         self.interface = interface
         self.clock = clock
-        self.drives = [EthercatDrive(n, clock) for n in range(1, slaves + 1)]
+        self._events: Optional[IO[str]] = open(events, "a", encoding="utf-8") if events else None
+        record = self._record if self._events is not None else None
+        self.drives = [EthercatDrive(n, clock, (quirks or {}).get(n, Quirks()), record)
+                       for n in range(1, slaves + 1)]
         self.segment = Segment([d.slave for d in self.drives])
         self.lock = threading.Lock()  # the segment: this thread against tests looking in
         self._sock: Optional[socket.socket] = open_socket(interface)
@@ -84,12 +97,21 @@ class EthercatServer:
                 except OSError:
                     pass  # the link is gone; the master will time out, as on a cut cable
 
+    def _record(self, event: Dict[str, Any]) -> None:
+        events = self._events
+        if events is not None:
+            events.write(json.dumps(event, separators=(",", ":")) + "\n")
+            events.flush()
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+        if self._events is not None:
+            self._events.close()
+            self._events = None
 
     def __enter__(self) -> "EthercatServer":
         return self

@@ -39,6 +39,7 @@ EPOS4_REVISION = 0x01700000
 MAILBOX_COE = 0x0004  # word 0x001C, bit 2
 CATEGORY_STRINGS, CATEGORY_GENERAL, CATEGORY_FMMU, CATEGORY_SM = 10, 30, 40, 41
 COE_DETAILS = 0x01 | 0x04 | 0x08  # SDO, PDO assign, PDO configuration
+COE_COMPLETE_ACCESS = 0x20  # SOEM ECT_COEDET_SDOCA
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,7 @@ def _category(kind: int, data: bytes) -> bytes:
 
 def build_sii(serial: int, *, name: str = "EPOS4", vendor: int = MAXON_VENDOR_ID,
               product: int = EPOS4_PRODUCT_CODE, revision: int = EPOS4_REVISION,
-              mailbox: MailboxLayout = DEFAULT_MAILBOX) -> bytes:
+              mailbox: MailboxLayout = DEFAULT_MAILBOX, ca: bool = True) -> bytes:
     """The EEPROM contents, little endian words, as a master reads them."""
     config = struct.pack("<7H", 0x0C08, 0, 0, 0, 0, 0, 0)  # PDI control: **chosen**, any PDI
     header = bytearray(config + struct.pack("<H", crc8(config)))
@@ -101,7 +102,8 @@ def build_sii(serial: int, *, name: str = "EPOS4", vendor: int = MAXON_VENDOR_ID
     text = bytes([len(strings)]) + b"".join(bytes([len(s)]) + s for s in strings)
     # General (ETG.2010 Table 4): group, image, order, name (string indices), reserved,
     # CoE/FoE/EoE/SoE details, DS402 channels, SysmanClass, flags, current on E-bus, ...
-    general = bytes([0, 0, 2, 1, 0, COE_DETAILS, 0, 0, 0, 1, 0, 0]) + bytes(20)
+    coe = COE_DETAILS | (COE_COMPLETE_ACCESS if ca else 0)
+    general = bytes([0, 0, 2, 1, 0, coe, 0, 0, 0, 1, 0, 0]) + bytes(20)
     fmmu = bytes([1, 2, 3, 0xFF])  # outputs, inputs, mailbox status, unused
     sms = b"".join(struct.pack("<HHBBBB", sm.start, sm.length, sm.control, 0, sm.enable, 0)
                    for sm in SYNC_MANAGERS)

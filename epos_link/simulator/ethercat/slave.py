@@ -15,13 +15,26 @@ What the firmware behind the ESC does (guide chapter 4; ETG.1000.6):
   the acknowledge bit is ignored; lower ones are carried out;
 * the mailbox (PRE-OP, SAFE-OP, OP): a message the master wrote to SM0 is
   answered through SM1 (:mod:`.coe`); replies queue while SM1 is full;
+  ``reply_delay(message)`` may hold a reply back for some seconds (a slow
+  service, :mod:`.quirks` ``late``), while process data goes on;
   **chosen**: in INIT a message is dropped;
 * process data: in SAFE-OP and OP the inputs (TxPDO, SM3) are sampled from the
   drive whenever the master reads them; only in OP are the outputs (RxPDO, SM2)
   written to the drive (guide Table 4-17: SAFE-OP "ignoring new setpoint
-  values"). **chosen**: an output object is written when its value differs from
-  the last one written (the first cycle in OP writes all), and a value the
-  dictionary refuses (e.g. modes of operation 0) is skipped;
+  values"). Outside OP the firmware deactivates SM2 through the PDI (ESC
+  register 0x0807 bit 0; the Beckhoff Slave Stack Code's ``StopOutputHandler``
+  on leaving OP), so the master's output write earns no working counter there:
+  a master sees a slave that left OP by its short working counter, as SOEM's
+  ``ecatcheck`` expects. An output object is written when its value differs from the last
+  one written (the first cycle in OP writes all), except the controlword
+  6040h, which is given to the drive with every frame: CiA 402-2 6.4.1 defines
+  the device control commands by the controlword's value, so a drive that
+  stopped by itself (quick stop, 6007h reaction) and still receives "enable
+  operation" takes transition 16 back up when 605Ah allows it, as issue 31
+  saw on an independent slave (**chosen**: the strict reading). A value the
+  dictionary refuses (e.g. modes of operation 0) is skipped.
+  ``apply_outputs`` may replace the writing of one frame's objects (the drive
+  application does it under its lock and records what happened);
 * the process-data watchdog (ESC registers 0x0400 divider, default 2498 =
   100 us, and 0x0420 time, default 1000 = 100 ms; enabled by SM2 control bit 6,
   which the SII sets): in OP, when no write to SM2 came for that long, the
@@ -35,7 +48,7 @@ from enum import IntEnum
 from typing import Callable, Optional
 
 from . import esc as regs
-from .coe import ObjectAccess, SdoServer, mailbox_message, parse_mailbox
+from .coe import MBX_COE, ObjectAccess, SdoServer, mailbox_message, parse_mailbox
 from .esc import Esc
 from .frame import Command, Datagram
 from .pdo import EthercatObjects, PdoLayout, read_layout
@@ -65,6 +78,8 @@ class AlStatusCode(IntEnum):
     INVALID_INPUT_CONFIG = 0x001E
 
 
+# Objects given to the drive with every frame, not only when they change (docstring).
+LEVEL_OBJECTS = frozenset({(0x6040, 0)})
 _UP = {(AlState.INIT, AlState.PRE_OP), (AlState.PRE_OP, AlState.SAFE_OP), (AlState.SAFE_OP, AlState.OP)}
 _READS = {Command.APRD, Command.FPRD, Command.BRD}
 _WRITES = {Command.APWR, Command.FPWR, Command.BWR}
@@ -80,19 +95,27 @@ class EthercatSlave:
 
     def __init__(self, objects: ObjectAccess, serial: int = 1, *,
                  on_enter_op: Callable[[], None] = lambda: None,
-                 on_leave_op: Callable[[str], None] = lambda cause: None) -> None:
+                 on_leave_op: Callable[[str], None] = lambda cause: None,
+                 complete_access: bool = True, ca_padding: bool = True,
+                 reply_delay: Callable[[bytes], float] = lambda message: 0.0,
+                 apply_outputs: Optional[Callable[[list[tuple[int, int, bytes]]], None]] = None
+                 ) -> None:
         self.objects = EthercatObjects(objects, lambda: self.state is AlState.PRE_OP)
-        self.esc = Esc(build_sii(serial))
+        self.esc = Esc(build_sii(serial, ca=complete_access))
         self.on_enter_op = on_enter_op
         self.on_leave_op = on_leave_op
+        self.ca_padding = ca_padding
+        self.reply_delay = reply_delay
+        self.apply_outputs = apply_outputs if apply_outputs is not None else self._write_outputs
         self.state = AlState.INIT
         self.layout: Optional[PdoLayout] = None
-        self.sdo = SdoServer(self.objects, SYNC_MANAGERS[1].length)
-        self._replies: list[tuple[int, bytes]] = []
+        self.sdo = SdoServer(self.objects, SYNC_MANAGERS[1].length, ca_padding=ca_padding)
+        self._replies: list[tuple[float, int, bytes]] = []  # due time, type, data
         self._counter = 0
         self._written: dict[tuple[int, int], bytes] = {}
         self.now = 0.0
         self._triggered = 0.0  # last SM2 write (process data watchdog)
+        self.esc.sm_deactivated[2] = True  # outputs only in OP (docstring)
         self.esc.on_write = self._on_write
         self.esc.on_sm_filled = self._on_sm_filled
         self.esc.on_sm_emptied = self._on_sm_emptied
@@ -152,8 +175,9 @@ class EthercatSlave:
         return (self.esc.u16(regs.WATCHDOG_DIVIDER) + 2) / 25e6 * count
 
     def tick(self, now: float) -> None:
-        """Expire the process-data watchdog if it is due."""
+        """Expire the process-data watchdog if it is due; deliver a held reply."""
         self.now = now
+        self._deliver()
         timeout = self.watchdog_time()
         if self.state is not AlState.OP or timeout is None:
             return
@@ -231,10 +255,12 @@ class EthercatSlave:
 
     def _enter(self, target: AlState, keep_error: bool = False) -> None:
         self.state = target
+        self.esc.sm_deactivated[2] = target is not AlState.OP
         self.esc.set_u16(regs.AL_STATUS, target | (0x10 if keep_error else 0))
         if target is AlState.INIT:
             self._replies.clear()
-            self.sdo = SdoServer(self.objects, SYNC_MANAGERS[1].length)
+            self.sdo = SdoServer(self.objects, SYNC_MANAGERS[1].length,
+                                 ca_padding=self.ca_padding)
         if target <= AlState.PRE_OP:
             self.layout = None
         if target is AlState.OP:
@@ -255,7 +281,9 @@ class EthercatSlave:
                 header, body = parse_mailbox(data)
             except ValueError:
                 return  # **chosen**: a malformed mailbox header is dropped
-            self._replies.append(self.sdo.handle(header.kind, body))
+            delay = self.reply_delay(body) if header.kind == MBX_COE else 0.0
+            kind, reply = self.sdo.handle(header.kind, body)
+            self._replies.append((self.now + delay, kind, reply))
             self._deliver()
         elif n == 2:
             self._triggered = self.now
@@ -268,8 +296,8 @@ class EthercatSlave:
             self._deliver()
 
     def _deliver(self) -> None:
-        if self._replies and not self.esc.mailbox_full[1]:
-            kind, data = self._replies.pop(0)
+        if self._replies and not self.esc.mailbox_full[1] and self._replies[0][0] <= self.now:
+            _due, kind, data = self._replies.pop(0)
             self._counter = self._counter % 7 + 1  # 1..7; 0 is reserved (ETG.1000.6 5.6.1)
             self.esc.fill_sm(1, mailbox_message(kind, self._counter, data))
 
@@ -284,12 +312,19 @@ class EthercatSlave:
 
     def _apply_outputs(self, data: bytes) -> None:
         assert self.layout is not None
+        changed = []
         for entry, value in self.layout.split_outputs(data):
             key = (entry.index, entry.subindex)
-            if self._written.get(key) == value:
+            if self._written.get(key) == value and key not in LEVEL_OBJECTS:
                 continue
             self._written[key] = value
+            changed.append((entry.index, entry.subindex, value))
+        if changed:
+            self.apply_outputs(changed)
+
+    def _write_outputs(self, changed: list[tuple[int, int, bytes]]) -> None:
+        for index, subindex, value in changed:
             try:
-                self.objects.write(entry.index, entry.subindex, value)
+                self.objects.write(index, subindex, value)
             except Exception:  # refused by the dictionary: skipped (see the docstring)
                 pass
