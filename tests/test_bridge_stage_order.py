@@ -140,7 +140,7 @@ def two_buses(**extra: Any) -> Dict[str, Any]:
 @pytest.fixture
 def line() -> Iterator[Served]:
     """Two internal axes in profile position mode, one on each bus: command 90 moves both."""
-    b = Served(two_buses(internal=True))
+    b = Served(two_buses(internal=True, profile="drive"))  # the drives' own profile mode
     try:
         b.ok("1S04=1", "2S04=1", "1S05=10", "1S06=100", "2S05=10", "2S06=100",
              "1S02=5", "2S02=5")  # LINR: each by its own 02
