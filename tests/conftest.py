@@ -15,8 +15,8 @@
   ``veth`` (root, veth pairs, raw sockets, the EtherCAT cycle: one at a time, so
   slaves' process-data watchdogs see only one master's cycle competing for the
   CPU), ``tmux`` (one tmux server for every session), ``chromium``.
-* **order**: the groups, then the ``slow`` tests, then the rest, each in collection
-  order: the long work starts first and the short tests fill in around it, so
+* **order**: the groups, then the ``slow`` tests and those measured longest
+  (``LONG``), then the rest, each in collection order: the long work starts first and the short tests fill in around it, so
   no worker is left with a long test at the end.
 """
 from __future__ import annotations
@@ -38,6 +38,17 @@ GROUPS: Tuple[Tuple[str, Tuple[str, ...]], ...] = (
     ("chromium", ("tests.cdp",)),
 )
 FIRST = [name for name, _ in GROUPS]
+# The longest tests by --durations (each 15-65 s on this machine, waiting or computing):
+# they start with the slow ones, so that no worker is left with one of them at the end.
+LONG = (
+    "tests/test_docs_commands.py::test_console_block[docs/epos-link.md:",  # a scan of 127 nodes
+    "tests/test_bridge_profile.py::test_a_line_is_continuous",
+    "tests/test_cli_sim.py::test_twenty_commands_in_a_row",
+    "tests/test_soak.py::",
+    "tests/test_bridge_heartbeat_e2e.py::",
+    "tests/test_bridge_config.py::test_any_document",
+    "tests/test_record.py::test_record_a_move_at_5_ms",
+)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -66,7 +77,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: List[pytest.Item
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
             grouped[group].append(item)
-        elif item.get_closest_marker("slow"):
+        elif item.get_closest_marker("slow") or item.nodeid.startswith(LONG):
             slow.append(item)
         else:
             rest.append(item)
