@@ -99,7 +99,8 @@ class _Version(argparse.Action):
                  values: object, option_string: Optional[str] = None) -> None:
         from importlib.metadata import version
 
-        parser.exit(message=f"{parser.prog} {version('epos-link')}\n")
+        print(f"{parser.prog} {version('epos-link')}")  # stdout, as argparse's own action
+        parser.exit()
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
