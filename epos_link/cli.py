@@ -60,7 +60,19 @@ def _overview() -> str:
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def chosen_command(argv: Sequence[str]) -> Optional[str]:
+    """The subcommand ``argv`` names: its first word that is not an option (the top-level
+    parser takes no option with a value), if it is a command."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in COMMANDS else None
+
+
+def build_parser(argv: Optional[Sequence[str]] = None) -> argparse.ArgumentParser:
+    """The parser; only the module of the command ``argv`` names is imported for its
+    arguments (``None``: every command's), so ``epos-link --version`` or ``epos-link read``
+    does not pay for matplotlib, canopen or pyusb, which other commands import
+    (issue 32: a spawned ``epos-link`` starts fast)."""
+    wanted = set(COMMANDS) if argv is None else {chosen_command(argv)}
     parser = OneLineParser(
         prog="epos-link", description="maxon EPOS4 USB/RS232 protocol tools",
         epilog=_overview(), formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -69,15 +81,33 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module, help_text, example) in COMMANDS.items():
         p = sub.add_parser(name, description=f"{help_text}. Example: {example}")
         p.set_defaults(_module=module)
-        importlib.import_module(module).add_arguments(p)
+        if name in wanted:
+            importlib.import_module(module).add_arguments(p)
     return parser
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    from importlib.metadata import version  # the installed distribution, as pip shows it
+class _Version(argparse.Action):
+    """``--version``: the installed distribution's version, as pip shows it, looked up
+    only when asked (importlib.metadata costs a spawned command ~0.1 s)."""
 
-    parser = build_parser()
-    parser.add_argument("--version", action="version", version=f"%(prog)s {version('epos-link')}")
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS, help: str = "show program's version number and exit"
+                 ) -> None:
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: Optional[str] = None) -> None:
+        from importlib.metadata import version
+
+        print(f"{parser.prog} {version('epos-link')}")  # stdout, as argparse's own action
+        parser.exit()
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+    parser = build_parser(argv)
+    parser.add_argument("--version", action=_Version)
     args = parser.parse_args(argv)
     module = importlib.import_module(args._module)
     try:

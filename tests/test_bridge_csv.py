@@ -10,17 +10,18 @@ positions over windows of 30 ms (inc/s); bounds carry wide margins.
 from __future__ import annotations
 
 import time
-from typing import Iterator, Tuple
+from typing import Iterator, List, Tuple
 
 import pytest
 
 from epos_link.cia402 import State
 from tcp_bridge.engine import Engine, build_engine
 from tcp_bridge.errors import DeviceFailure
+from tcp_bridge.tables.axes import simulated_increments_per_revolution
 from tcp_bridge.wire import Status
-from tests.drive_samples import DriveSampler, largest_change, velocities
+from tests.drive_samples import DriveSampler, SentSetpoints, largest_change, velocities
 from tests.helpers import wait_until
-from tests.test_bridge_csp import FACTOR, STOP, VELOCITY, ask, table
+from tests.test_bridge_csp import FACTOR, STOP, VELOCITY, ask, table, wait_for_consumers
 
 Sample = Tuple[float, int, State, int]  # time, position of node 2, its state, its mode
 
@@ -44,6 +45,13 @@ def velocity_now(sampler: Sampler, span: float = 0.05) -> float:
     return (b[1] - a[1]) / (b[0] - a[0])
 
 
+def largest_acceleration(commanded: List[Tuple[float, int]]) -> float:
+    """The largest |dv/dt| of target velocities sent (60FFh, rpm on an EPOS4), in inc/s^2,
+    over windows of 30 ms (a rounding to whole rpm is then at most 1.4% of 28)."""
+    rpm = simulated_increments_per_revolution() / 60.0  # inc/s per rpm
+    return max(abs(a) for _, a in velocities(commanded)) * rpm
+
+
 @pytest.fixture
 def engine() -> Iterator[Engine]:
     engine = build_engine(table())
@@ -55,6 +63,7 @@ def engine() -> Iterator[Engine]:
 
 def test_s00_3_ramps_to_05_s00_8_ramps_down_and_s00_1_moves_again(engine: Engine) -> None:
     assert ask(engine, "1S04=1")[0] is Status.ACK
+    sent = SentSetpoints(engine.backends[0].cyclic)
     sampler = Sampler(engine)
     assert ask(engine, "1S00=3")[0] is Status.ACK
     assert sampler.now()[3] == 9  # CSV
@@ -70,8 +79,12 @@ def test_s00_3_ramps_to_05_s00_8_ramps_down_and_s00_1_moves_again(engine: Engine
     seen = sampler.close()
     v = velocities(seen)
     # Ramps at 06 up and 28 down (inc/s^2), never a step: a step of 20000 inc/s
-    # would read about 20000 / 0.03 = 670000 inc/s^2 here.
-    assert largest_change(v) < 2.5 * STOP * FACTOR, v
+    # would read about 20000 / 0.03 = 670000 inc/s^2 here. Checked on the target
+    # velocities sent, at the times they were computed for (tests/drive_samples.py
+    # SentSetpoints: a loaded machine delays some on their way to the drive).
+    commanded = SentSetpoints.series(sent.velocities, 2)
+    assert largest_acceleration(commanded) < 1.05 * STOP * FACTOR, commanded
+    assert commanded[-1][1] == 0  # ended at rest, as the drive did (below)
     rising = [x for x in v if x[0] < stop_at[0] and 0.2 * cruise < x[1] < 0.8 * cruise]
     falling = [x for x in v if x[0] > stop_at[0] and 0.2 * cruise < x[1] < 0.8 * cruise]
     assert rising and falling  # passed through the middle both ways: ramps, not steps
@@ -91,13 +104,15 @@ def test_s00_3_ramps_to_05_s00_8_ramps_down_and_s00_1_moves_again(engine: Engine
 def test_a_negative_05_runs_backwards_and_s04_0_ramps_down_first(engine: Engine) -> None:
     assert ask(engine, "1S04=1")[0] is Status.ACK
     assert ask(engine, f"1S05={-VELOCITY}")[0] is Status.ACK
+    sent = SentSetpoints(engine.backends[0].cyclic)
     sampler = Sampler(engine)
     assert ask(engine, "1S00=3")[0] is Status.ACK
     wait_until(lambda: velocity_now(sampler) < -0.9 * VELOCITY * FACTOR, 30, "never got going")
     assert ask(engine, "1S04=0")[0] is Status.ACK  # answered once at rest
     assert sampler.now()[2] is not State.OPERATION_ENABLED
-    seen = sampler.close()
-    assert largest_change(velocities(seen)) < 2.5 * STOP * FACTOR
+    sampler.close()
+    commanded = SentSetpoints.series(sent.velocities, 2)  # as sent (SentSetpoints)
+    assert largest_acceleration(commanded) < 1.05 * STOP * FACTOR, commanded
     assert not engine.backends[0].simulator.drives[2].drive.unsafe_stops
 
 
@@ -110,9 +125,10 @@ def test_a_new_s00_3_during_a_velocity_move_is_refused(engine: Engine) -> None:
 
 
 def test_a_dead_set_point_thread_ends_in_the_drives_quick_stop_not_a_jump() -> None:
-    # The drives trip 600 ms after the last heartbeat: a 60 ms budget (heartbeat_ms=20)
-    # once tripped a drive before the move got going, on a loaded 2-core machine.
-    engine = build_engine(table(heartbeat_ms=200))
+    # The drives trip 3 s after the last heartbeat (heartbeat_ms 1000): a 60 ms budget
+    # once tripped a drive before the move got going on a loaded 2-core machine, and
+    # 600 ms did too with two CPU hogs running (issue 32).
+    engine = build_engine(table(heartbeat_ms=1000))
     try:
         backend = engine.backends[0]
         store = backend.simulator.drives[2].store
@@ -121,6 +137,7 @@ def test_a_dead_set_point_thread_ends_in_the_drives_quick_stop_not_a_jump() -> N
         sampler = Sampler(engine)
         assert ask(engine, "1S00=3")[0] is Status.ACK
         wait_until(lambda: velocity_now(sampler) > 0.9 * VELOCITY * FACTOR, 30, "never got going")
+        wait_for_consumers(engine, (2,))
         backend.cyclic.kill()  # no set-point, no heartbeat from now on
         killed = sampler.now()
         wait_until(lambda: sampler.now()[2] is not State.OPERATION_ENABLED, 10,

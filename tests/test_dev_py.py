@@ -109,14 +109,36 @@ def test_the_whole_suite_runs_mypy_first_and_a_type_error_fails_it(
     pytest, and a mypy failure fails it; with pytest arguments only pytest runs."""
     calls: list = []
     codes = {"mypy": 1, "pytest": 0}
+    commands: list = []
     monkeypatch.setattr(dev.subprocess, "call",
-                        lambda cmd, cwd=None: calls.append(cmd[2]) or codes[cmd[2]])
+                        lambda cmd, cwd=None, env=None: commands.append(cmd) or calls.append(cmd[2])
+                        or codes[cmd[2]])
     assert dev.run_tests([]) == 1 and calls == ["mypy"]
     calls.clear()
     codes["mypy"] = 0
     assert dev.run_tests([]) == 0 and calls == ["mypy", "pytest"]
+    # the whole suite: every test (no -m filter: the slow ones too), on xdist workers
+    assert commands[-1][3:] == ["-n", str(dev.WORKERS), "--dist", "loadgroup"]
     calls.clear()
     assert dev.run_tests(["-k", "framing"]) == 0 and calls == ["pytest"]
+    assert commands[-1][3:] == ["-k", "framing"]  # the user's arguments, alone
+
+
+@pytest.mark.parametrize("exit_code, expected", [(0, 0), (1, 1), (5, 1)])
+def test_pytest_collecting_nothing_fails_the_run(monkeypatch: pytest.MonkeyPatch,
+                                                 exit_code: int, expected: int) -> None:
+    """pytest's exit 5 (no tests collected) must never count as a pass."""
+    monkeypatch.setattr(dev.subprocess, "call", lambda cmd, cwd=None, env=None: exit_code)
+    assert dev.run_tests(["-k", "no such test"]) == expected
+
+
+def test_tests_run_with_the_bytecode_cache_in_the_venv(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 32: PYTHONDONTWRITEBYTECODE would make every run compile every module again."""
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    monkeypatch.delenv("PYTHONPYCACHEPREFIX", raising=False)
+    env = dev.test_env()
+    assert "PYTHONDONTWRITEBYTECODE" not in env
+    assert env["PYTHONPYCACHEPREFIX"] == str(ROOT / ".venv" / "pycache")
 
 
 def test_the_packages_are_marked_typed() -> None:

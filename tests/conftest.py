@@ -1,0 +1,84 @@
+"""How the suite runs (issue 32): markers, hypothesis settings, xdist groups, order.
+
+* ``slow``: a test that keeps a wait at its real value (an idle timeout, a gateway's
+  SDO timeout, a scan of every node): the one test per timeout that the faster
+  tests, which shrink it, lean on. CI runs them (``dev.py test`` runs everything);
+  ``-m "not slow"`` leaves them out while working.
+* **hypothesis**: no per-example deadline and no "too slow" health check. Both
+  measure wall-clock time, which a loaded 2-core machine stretches at random (a
+  test that fails once under load is a defect, GUIDE.md); what each property
+  checks is unchanged, and so is its number of examples.
+* **xdist groups** (``dev.py test`` runs ``-n N --dist loadgroup``): tests that must
+  not run at the same time as each other go to one worker, in order. A module is
+  put in a group by what it uses, read from its source, so a new test file that
+  uses a veth pair, tmux or chromium lands in the right group by itself:
+  ``veth`` (root, veth pairs, raw sockets, the EtherCAT cycle: one at a time, so
+  slaves' process-data watchdogs see only one master's cycle competing for the
+  CPU), ``tmux`` (one tmux server for every session), ``chromium``.
+* **order**: the groups, then the ``slow`` tests and those measured longest
+  (``LONG``), then the rest, each in collection order: the long work starts first and the short tests fill in around it, so
+  no worker is left with a long test at the end.
+"""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import pytest
+from hypothesis import HealthCheck, settings
+
+settings.register_profile("suite", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("suite")
+
+# group -> words in a test module's source that put it in the group
+GROUPS: Tuple[Tuple[str, Tuple[str, ...]], ...] = (
+    ("veth", ("veth", "SimulatedEthercat")),
+    ("tmux", ("TMUX",)),
+    ("chromium", ("tests.cdp",)),
+)
+FIRST = [name for name, _ in GROUPS]
+# The longest tests by --durations (each 15-65 s on this machine, waiting or computing):
+# they start with the slow ones, so that no worker is left with one of them at the end.
+LONG = (
+    "tests/test_docs_commands.py::test_console_block[docs/epos-link.md:",  # a scan of 127 nodes
+    "tests/test_bridge_profile.py::test_a_line_is_continuous",
+    "tests/test_cli_sim.py::test_twenty_commands_in_a_row",
+    "tests/test_soak.py::",
+    "tests/test_bridge_heartbeat_e2e.py::",
+    "tests/test_bridge_config.py::test_any_document",
+    "tests/test_record.py::test_record_a_move_at_5_ms",
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "slow: keeps a wait at its real value (see tests/conftest.py)")
+    config.addinivalue_line("markers", "xdist_group(name): run on one worker with the rest of its group")
+
+
+@functools.lru_cache(maxsize=None)
+def group_of(path: Path) -> Optional[str]:
+    try:
+        source = path.read_text()
+    except OSError:
+        return None
+    for name, words in GROUPS:
+        if any(word in source for word in words):
+            return name
+    return None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: List[pytest.Item]) -> None:
+    grouped: Dict[str, List[pytest.Item]] = {name: [] for name in FIRST}
+    slow: List[pytest.Item] = []
+    rest: List[pytest.Item] = []
+    for item in items:
+        group = None if item.get_closest_marker("xdist_group") else group_of(Path(item.path))
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+            grouped[group].append(item)
+        elif item.get_closest_marker("slow") or item.nodeid.startswith(LONG):
+            slow.append(item)
+        else:
+            rest.append(item)
+    items[:] = [i for name in FIRST for i in grouped[name]] + slow + rest
