@@ -16,14 +16,16 @@ version and hashes above.
 from __future__ import annotations
 
 from functools import lru_cache
-from importlib import resources
+from pathlib import Path
 
 UPLOT_VERSION = "1.6.32"
 
 
 @lru_cache(maxsize=None)
 def _text(name: str) -> str:
-    return resources.files(__name__).joinpath("uplot").joinpath(name).read_text(encoding="utf-8")
+    # A plain path, not importlib.resources: that imports zipfile and with it threading,
+    # and the status page that inlines these files is a pure module (tests/test_purity.py).
+    return (Path(__file__).parent / "uplot" / name).read_text(encoding="utf-8")
 
 
 def uplot_js() -> str:
