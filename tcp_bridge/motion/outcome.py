@@ -21,8 +21,12 @@ the first one ran:
   generator's output moves only once a set-point was taken), so a client that
   reads R86 and R12 after the NAK can decide whether to send the move again.
 
-Reading back is bounded by ``state_timeout`` per axis; an axis that cannot be read
-says so in the same line. Nothing here writes to a drive: the halt is
+Reading back must not hold up the NAK (a drive that owes its halt gets it only
+with the next command): each object is read once (the port itself tries a
+garbled answer again, :func:`~tcp_bridge.bus.sdo.retry_garbled`), a drive stops
+being read at its first failure, and a drive that owes its halt is not read at
+all (its node is silent). What could not be read says so in the same line.
+Nothing here writes to a drive: the halt is
 :meth:`~tcp_bridge.motion.Cia402.halt_or_owe`'s.
 """
 from __future__ import annotations
@@ -32,7 +36,7 @@ from typing import TYPE_CHECKING, Callable, List, Optional, Sequence, Tuple
 
 from epos_link.cia402 import describe_statusword
 
-from ..cia402_words import STATUSWORD, Deadline
+from ..cia402_words import STATUSWORD
 from ..errors import DeviceFailure
 
 if TYPE_CHECKING:
@@ -49,32 +53,30 @@ class NotStarted(DeviceFailure):
     """The drive shows that a move's start write did not take effect: nothing started."""
 
 
-def _read_back(drive: "Cia402", index: int) -> Tuple[Optional[int], str]:
-    """(value, "") or (None, why): one object read again after a lost or garbled answer,
-    within ``state_timeout``."""
-    deadline = Deadline(drive._clock, drive.timing.state_timeout)
-    try:
-        return drive._again(lambda: drive.port.read(index, 0), deadline), ""
-    except DeviceFailure as exc:
-        return None, str(exc)
-
-
 def _shown(drive: "Cia402", origin: Optional[int]) -> Tuple[str, bool]:
     """What ``drive`` shows now, for the log line, and whether it has left ``origin``
     (its position demand before the start write; None: not known)."""
-    position, why = _read_back(drive, POSITION_ACTUAL)
-    parts = [f"position {position} (6064h)" if position is not None
-             else f"position not read ({why})"]
-    started = False
+    if drive.halt_owed:
+        return "not read: its node is silent (the halt is sent before its next command)", False
+    wanted = [(POSITION_ACTUAL, "position"), (STATUSWORD, "statusword")]
     if origin is not None:
-        demand, why = _read_back(drive, POSITION_DEMAND)
-        if demand is not None:
-            started = demand != origin
-            parts.append(f"position demand {demand} (6062h; {origin} before the start write"
-                         f": {'it started' if started else 'it did not start'})")
-    sw, why = _read_back(drive, STATUSWORD)
-    parts.append(f"statusword 0x{sw:04X} ({describe_statusword(sw)})" if sw is not None
-                 else f"statusword not read ({why})")
+        wanted.insert(1, (POSITION_DEMAND, "position demand"))
+    parts: List[str] = []
+    started = False
+    for index, name in wanted:
+        try:
+            value = drive.port.read(index, 0)
+        except DeviceFailure as exc:
+            parts.append(f"{name} not read ({exc})")
+            break
+        if index == STATUSWORD:
+            parts.append(f"statusword 0x{value:04X} ({describe_statusword(value)})")
+        elif index == POSITION_DEMAND:
+            started = value != origin
+            parts.append(f"position demand {value} (6062h; {origin} before the start write: "
+                         f"{'it started' if started else 'it did not start'})")
+        else:
+            parts.append(f"position {value} (6064h)")
     return ", ".join(parts), started
 
 
