@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import socket
 from typing import Any, Dict, Final, List, Optional, Sequence, Set, Tuple
 
 from ..access import LOOPBACK, Network, describe, is_allowed
@@ -53,6 +54,7 @@ HEAD_TIMEOUT: Final = 5.0  # seconds to send them (a browser sends them at once)
 IDLE_TIMEOUT: Final = 2.0  # seconds without a byte while the head is still coming
 MAX_CONNECTIONS: Final = 16
 MAX_STREAMS: Final = 8
+ACCEPT_BACKLOG: Final = 64  # connections the kernel holds while every slot is busy
 WRITE_TIMEOUT: Final = 10.0  # a client that does not read its answer is dropped
 STREAM_RETRY_MS: Final = 3000  # EventSource's reconnection time, sent with each stream
 
@@ -106,11 +108,15 @@ class StatusServer:
         self.sampler = sampler
         self.host, self.port = host, port
         self.allow = allow
-        self._server: Optional[asyncio.Server] = None
+        self._listener: Optional[socket.socket] = None
+        self._acceptor: Optional["asyncio.Task[None]"] = None
+        self._room = asyncio.Event()  # set when a connection ends (a slot may be free)
         self._tasks: Set["asyncio.Task[None]"] = set()
         self._slots = Slots()
         self.limit = RateLimit()
         self._encoded: Dict[str, Tuple[Any, bytes]] = {}  # route -> (body, its JSON)
+        self.refused = 0  # connections refused for want of a slot
+        self._refusal_logged = float("-inf")
         self._closing = False
 
     @property
@@ -119,27 +125,63 @@ class StatusServer:
 
     @property
     def addresses(self) -> List[Tuple[str, int]]:
-        sockets = self._server.sockets if self._server is not None else ()
-        return [s.getsockname()[:2] for s in sockets or ()]
+        return [self._listener.getsockname()[:2]] if self._listener is not None else []
 
     async def start(self) -> "StatusServer":
-        self._server = await asyncio.start_server(self._serve, self.host, self.port,
-                                                  limit=MAX_HEAD)
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        self._listener = socket.create_server((self.host, self.port), family=family,
+                                              backlog=ACCEPT_BACKLOG)
+        self._listener.setblocking(False)
+        self._acceptor = asyncio.ensure_future(self._accept(self._listener))
         return self
+
+    async def _accept(self, listener: socket.socket) -> None:
+        """Accept a connection only when it can have a slot (a free one, or one whose
+        head is still coming): with every slot busy answering, the next ones wait in
+        the kernel's listen backlog and cost the event loop, which the PSI ports
+        share, nothing at all."""
+        loop = asyncio.get_running_loop()
+        while not self._closing:
+            if len(self._slots) >= MAX_CONNECTIONS and not self._slots.in_phase(Phase.HEAD):
+                self._room.clear()
+                await self._room.wait()
+                continue
+            try:
+                conn, _ = await loop.sock_accept(listener)
+            except OSError as exc:  # e.g. out of descriptors: try again shortly
+                log.warning("status page: accept failed: %s", exc)
+                await asyncio.sleep(0.1)
+                continue
+            task = asyncio.ensure_future(self._connection(conn))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+    async def _connection(self, conn: socket.socket) -> None:
+        try:
+            reader, writer = await asyncio.open_connection(sock=conn, limit=MAX_HEAD)
+        except OSError:
+            conn.close()
+            return
+        await self._serve(reader, writer)
 
     @property
     def url(self) -> str:
         host, port = self.addresses[0]
         return f"http://{'[' + host + ']' if ':' in host else host}:{port}/"
 
-    async def close(self) -> None:
-        """Stop listening, end every connection (streams too), stop the sampler."""
+    async def close(self, *, sampler: bool = True) -> None:
+        """Stop listening, end every connection (streams too), stop the sampler (unless
+        ``sampler`` is False: another server shares it)."""
         self._closing = True
-        if self._server is not None:
-            self._server.close()
+        self._room.set()
+        if self._acceptor is not None:
+            await cancel_and_wait([self._acceptor], 2.0)
+        if self._listener is not None:
+            self._listener.close()
         if await cancel_and_wait(list(self._tasks), 2.0):
             log.warning("status page: %d connections still open after 2 s", len(self._tasks))
-        await self.sampler.close()
+        if sampler:
+            await self.sampler.close()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
@@ -153,10 +195,14 @@ class StatusServer:
         loop = asyncio.get_running_loop()
         slot = Slot((task, writer), loop.time())
         admitted, victim = self._slots.admit(slot, MAX_CONNECTIONS)
-        if not admitted:
-            log.warning("status page: refused %s: %d connections already, each with a "
-                        "complete request", peer, MAX_CONNECTIONS)
-            writer.close()
+        if not admitted:  # a head finished since the acceptor looked
+            self.refused += 1
+            if loop.time() - self._refusal_logged >= 1.0:  # a flood is one line a second
+                self._refusal_logged = loop.time()
+                log.warning("status page: refused %s: %d connections already, each with a "
+                            "complete request (%d refused so far)", peer, MAX_CONNECTIONS,
+                            self.refused)
+            writer.transport.abort()  # nothing to say, nothing to wait for
             return
         if victim is not None:
             log.info("status page: %d connections; closed %s, whose request head was still "
@@ -164,14 +210,13 @@ class StatusServer:
                      victim.handle[1].get_extra_info("peername"), loop.time() - victim.since,
                      peer)
             _end(victim)
-        self._tasks.add(task)
         try:
             await self._answer(slot, reader, writer)
         except (ConnectionError, OSError, asyncio.TimeoutError, asyncio.CancelledError):
             pass
         finally:
             self._slots.remove(slot)
-            self._tasks.discard(task)
+            self._room.set()
             if writer.transport.get_write_buffer_size():
                 writer.transport.abort()  # a client that does not read: no close handshake
             else:
