@@ -15,7 +15,7 @@ from typing import Any, List, Tuple
 
 import pytest
 
-from tcp_bridge.tables.axes import AxisTable
+from tcp_bridge.tables.axes import AxisTable, ConfigError
 from tcp_bridge.tables.parameters import ParameterStore
 from tcp_bridge.tables.statefile import remove_stale_temporaries, write_atomically
 
@@ -103,3 +103,27 @@ def test_waiters_are_released_when_their_write_ends_even_if_it_fails(tmp_path: P
         return await store.written(store.version, 30.0)
     assert asyncio.run(go())  # ended (failed and logged), not waiting for ever
     store.close()
+
+
+def test_a_state_file_nested_2000_deep_is_one_clear_line(tmp_path: Path) -> None:
+    """Issue 35: json recurses per bracket; 2,000 of them were a RecursionError traceback."""
+    path = tmp_path / "s.json"
+    path.write_text("[" * 2000 + "]" * 2000)
+    with pytest.raises(ConfigError) as info:
+        ParameterStore(table(), path)
+    assert str(info.value) == (f"state file {path} is damaged (nested too deeply to be a "
+                               "state file); move it away to start from the axis table")
+
+
+def test_serve_with_a_deeply_nested_state_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    import subprocess
+
+    path = tmp_path / "s.json"
+    path.write_text('{"a": ' * 2000 + "1" + "}" * 2000)
+    proc = subprocess.run([sys.executable, "-m", "tcp_bridge.cli", "serve", "--simulate",
+                           "--state-file", str(path), "--port", "0", "--maintenance-port", "-1"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [
+        f"tcp-bridge: state file {path} is damaged (nested too deeply to be a state file); "
+        "move it away to start from the axis table"]

@@ -180,7 +180,12 @@ class ParameterStore:
             except UnicodeDecodeError as exc:
                 raise ValueError(f"not UTF-8 text: byte 0x{raw[exc.start]:02X} at offset "
                                  f"{exc.start}") from None
-            data = json.loads(text)
+            try:
+                data = json.loads(text)
+            except RecursionError:  # json nests by recursion: "[[[[..." too deep for it
+                raise ValueError("nested too deeply to be a state file") from None
+            if not isinstance(data, dict):
+                raise ValueError("not a tcp-bridge state file of version 1")
             if data.get("format") != self.FORMAT or data.get("version") != self.VERSION:
                 raise ValueError("not a tcp-bridge state file of version 1")
             axes = data["axes"]
