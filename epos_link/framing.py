@@ -16,10 +16,23 @@ continues from the point after the bad bytes, so no later frame is lost):
 * DLE STX inside a frame               -> :class:`TruncatedFrameError`, then the new frame
 * DLE followed by neither DLE nor STX  -> :class:`StuffingError`, rescan after the DLE
 * Len above 143 words                  -> :class:`FrameLengthError`, rescan after Len
-* CRC mismatch                         -> :class:`CrcError` carrying the decoded frame;
-  if the bad frame holds ``90 90 02``, a damaged lone DLE may have paired with the
-  next frame's sync, so the bytes from the second DLE are scanned again
+* CRC mismatch                         -> :class:`CrcError` carrying the decoded frame
 * input ends inside a frame            -> :class:`TruncatedFrameError` after :meth:`close`
+
+The hidden sync. Inside a frame ``90 90`` is an escaped 0x90 (2.2.4), so a lone
+DLE left by damage (a cut frame, a byte changed into 0x90) pairs with the DLE
+of the next frame's sync, and ``90 | 90 02`` reads as an escaped 0x90 and a
+data byte 0x02. The damaged frame then swallows the next one. So on *every*
+error path above, the bytes of the failed frame are scanned again from the
+first ``90 02`` after its own sync (and a DLE the failed frame ended on is
+scanned again with whatever follows it). The bad frame's bytes before that point are
+what the error reports; no byte is reported twice or lost. A later frame is
+lost only if the damaged bytes and it together pass the CRC check (one in
+65,536 for random damage).
+
+The decisions depend on the bytes alone, never on where the input was cut
+into chunks: the decoder waits for a byte it needs (the one after a DLE) instead
+of guessing, so any chunking gives the same frames and the same errors.
 
 Memory is bounded: a frame is at most 2 + 2 * (2 + 286 + 2) bytes on the wire,
 junk is reported in runs of at most ``max_junk`` bytes, and ``feed`` refuses
@@ -34,7 +47,6 @@ from .codes import DLE, MAX_LEN_WORDS, STX
 from .crc import frame_crc
 from .errors import (
     CrcError,
-    RemoteProtocolError,
     FrameLengthError,
     JunkBytesError,
     LocalProtocolError,
@@ -108,7 +120,6 @@ class FrameDecoder:
         self._need = 2            # unstuffed bytes wanted: header first, then the whole frame
         self._eof = False
         self._carry_dle = False   # the last frame ended in "90 90": its last DLE may start a sync
-        self.resync_hidden = True  # see _hidden_sync
 
     @property
     def pending(self) -> int:
@@ -145,8 +156,9 @@ class FrameDecoder:
     def _report_end(self) -> None:
         """At end of input: raise what is left, or return when nothing is."""
         if self._in_frame:
-            # A lone DLE in the cut frame may hide the next frame's sync (see _finish).
-            rest = self._give_back_hidden(bytes(self._raw + self._buf), len(self._buf))
+            # A lone DLE in the cut frame may hide a later frame's sync.
+            rest = self._give_back_hidden(bytes(self._raw + self._buf), len(self._buf),
+                                          open_end=False)
             raise TruncatedFrameError(f"input ended inside a frame ({len(rest)} bytes)", rest)
         leftover = bytes(self._junk + self._buf)
         self._junk.clear()
@@ -201,19 +213,24 @@ class FrameDecoder:
                         body.append(DLE)
                         i = q + 2
                     elif follower == STX:
-                        raw = self._give_back_hidden(bytes(self._raw + buf[:q]), q)
+                        # raw ends where the new sync begins: a DLE it ends on is not
+                        # followed by STX.
+                        raw = self._give_back_hidden(bytes(self._raw + buf[:q]), q,
+                                                     open_end=False)
                         raise TruncatedFrameError(
                             f"new DLE STX after {len(raw)} bytes of an unfinished frame", raw)
                     else:
                         # Rescan from the byte after the DLE (so it is not reported twice).
-                        raw = self._give_back_hidden(bytes(self._raw + buf[:q + 1]), q + 1)
+                        raw = self._give_back_hidden(bytes(self._raw + buf[:q + 1]), q + 1,
+                                                     open_end=False)
                         raise StuffingError(
                             f"DLE followed by 0x{follower:02X} inside a frame", raw)
                 if self._need == 2 and len(body) >= 2:
                     if body[1] > MAX_LEN_WORDS:
-                        raw = bytes(self._raw + buf[:i])
-                        del buf[:i]
-                        self._start_scan()
+                        # "90 02 op 90 | 90 02 ...": a frame cut after its opcode and a
+                        # lone DLE reads the next sync's DLE as a stuffed Len of 0x90.
+                        raw = self._give_back_hidden(bytes(self._raw + buf[:i]), i,
+                                                     open_end=True)
                         raise FrameLengthError(
                             f"Len {body[1]} words exceeds {MAX_LEN_WORDS}", raw)
                     self._need = 2 + 2 * body[1] + 2
@@ -257,48 +274,21 @@ class FrameDecoder:
             self._report_junk(len(self._junk))  # the new frame stays in progress
         return True
 
-    def _hidden_sync(self, raw: bytes, after: "bytes | None" = None) -> int:
-        """Where in ``raw`` (the stuffed bytes of a bad frame) a damaged lone DLE
-        may have swallowed the DLE of the next frame's sync: the position of the
-        first DLE of a ``90 90 02`` from which a frame decodes cleanly (or, with
-        the input still open, starts cleanly). -1 if there is none.
-
-        An escaped 0x90 followed by a 0x02 data byte looks the same on the wire,
-        so each candidate is tried on a scratch decoder before it is believed.
-        """
-        if not self.resync_hidden:
-            return -1
-        # One wire frame of what follows is enough to judge a candidate; more
-        # would make damaged input cost time in proportion to the buffer.
-        after = bytes(self._buf[:MAX_WIRE_FRAME]) if after is None else after[:MAX_WIRE_FRAME]
-        text = raw + after
-        start = 2
-        while True:
-            at = text.find(b"\x90\x90\x02", start, len(raw) + 1)
-            if at < 0:
-                return -1
-            trial = FrameDecoder(max_junk=self.max_junk)
-            trial.resync_hidden = False
-            trial.feed(text[at + 1:])
-            if self._eof:
-                trial.close()
-            try:
-                if trial.next_frame() is not NEED_DATA or not self._eof:
-                    return at
-            except RemoteProtocolError:
-                pass
-            start = at + 1
-
-    def _give_back_hidden(self, dropped: bytes, consumed: int) -> bytes:
-        """Drop ``consumed`` bytes of the buffer with the frame in progress; if a
-        hidden sync lies in ``dropped``, give the bytes from it back. Returns the
-        bytes to report."""
+    def _give_back_hidden(self, dropped: bytes, consumed: int, *, open_end: bool) -> bytes:
+        """The frame in progress failed: drop ``consumed`` bytes of the buffer, and
+        give back the bytes of ``dropped`` (its stuffed bytes) from the first place
+        a later frame's sync may hide in them (see the module docstring). With
+        ``open_end``, what follows ``dropped`` has not been judged, so a DLE it
+        ends on is given back too: the next byte decides whether it starts a sync.
+        Returns the bytes the error reports."""
         del self._buf[:consumed]
         self._start_scan()
-        hidden = self._hidden_sync(dropped)
-        if hidden >= 0:
-            self._buf[:0] = dropped[hidden + 1:]
-            dropped = dropped[:hidden + 1]
+        at = dropped.find(SYNC, 2)  # 2: not the failed frame's own sync
+        if at < 0 and open_end and len(dropped) > 2 and dropped[-1] == DLE:
+            at = len(dropped) - 1
+        if at >= 0:
+            self._buf[:0] = dropped[at:]
+            dropped = dropped[:at]
         return dropped
 
     def _finish(self) -> Frame:
@@ -311,12 +301,9 @@ class FrameDecoder:
         expected = frame_crc(opcode, words, data)
         if received != expected:
             frame = Frame(opcode, data, received, crc_ok=False)
-            # A lone DLE left by damage pairs with the DLE of the next frame's
-            # sync and hides it ("90 | 90 02" read as an escaped 0x90, then 0x02).
-            # Since this frame is bad anyway, read "90 90 02" the other way:
-            # give back the bytes from its second DLE, so that sync is found.
-            raw = self._give_back_hidden(raw, 0)
-            self._carry_dle = raw.endswith(_DLE_DLE)
+            # Since this frame is bad anyway, read any "90 90 02" in it the other
+            # way (a lone DLE, then a sync), and a DLE it ends on as a sync's first.
+            raw = self._give_back_hidden(raw, 0, open_end=True)
             raise CrcError(
                 f"CRC 0x{received:04X} received, 0x{expected:04X} computed", raw, frame)
         # A frame ending in an escaped DLE whose second DLE was really the next

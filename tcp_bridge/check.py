@@ -129,7 +129,7 @@ def check(axis_table: AxisTable, *, opener: Optional[Opener] = None,
     bus: each slave by position with its identity), for the lines after the table."""
     if opener is None:
         opener = _open_read_only
-    params = ParameterStore(axis_table)  # the state file's inversion/offset, read only
+    params = ParameterStore(axis_table, read_only=True)  # the state file's inversion/offset
     reports: Dict[int, AxisReport] = {}
     try:
         for name, bus in axis_table.buses.items():

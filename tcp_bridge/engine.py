@@ -20,6 +20,13 @@ against a write that then fails is not executed either (NAK;
 Reads may be shared or answered from PDOs, but never see a state older than
 an earlier request's ACK.
 
+**Durable before ACK** (issue 35). The ACK of a write that changed stored
+state (the S-command values of :mod:`tcp_bridge.tables.parameters`) leaves
+only once the state file holds the change (:meth:`Engine.execute` awaits
+:meth:`~tcp_bridge.tables.parameters.ParameterStore.written`). The bus worker
+stored the value and went on; only the reply waits, on the event loop, and
+writes that arrive together share one fsync.
+
 The reply is formatted after the outcome (:func:`format_outcome`); the server
 turns an exception into CAN or NAK in its one place
 (:func:`tcp_bridge.wire.format_error_reply`).
@@ -48,7 +55,8 @@ from .plan.planner import plan, release, releasing
 from .plan.resolve import Resolved, resolve
 from .tables.axes import AxisConfig, AxisTable, ConfigError, DeviceCode
 from .tables.parameters import ParameterStore
-from .wire import ReadRequest, Request, Status, format_read_reply, format_write_reply
+from .wire import (ReadRequest, Request, Status, WriteRequest, format_read_reply,
+                   format_request, format_write_reply)
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +190,8 @@ class Engine:
             value = self.scheduler.at_once(job)  # no coroutine: the status poll's path
             if value is BUSY:
                 value = await self.scheduler.queued(job, job if job.share is not None else None)
+        if isinstance(request, WriteRequest):
+            await self._persisted(request, self.params.version)
         return format_outcome(request, value)
 
     async def execute_all(self, requests: Sequence[Request]) -> List[bytes]:
@@ -209,14 +219,29 @@ class Engine:
                 for later in jobs[n + 1:]:
                     release(later, exc)
                 raise
+            if isinstance(request, WriteRequest):
+                await self._persisted(request, self.params.version)  # durable before ACK
             replies.append(format_outcome(request, value))
         return replies
+
+    async def _persisted(self, request: Request, version: int) -> None:
+        """Hold a write's ACK until the state file holds every change made so far
+        (this request's among them); at once when nothing is waiting to be written."""
+        if not await self.params.written(version, self.job_timeout):
+            # The value is in effect (NAK would say it is not, spec 2.2.2); say plainly
+            # that it may not survive a restart.
+            log.error("%s: the state file write holding it has not ended after %g s; "
+                      "answered ACK, but the value may be lost at a restart",
+                      format_request(request).decode("ascii", "replace").strip(),
+                      self.job_timeout)
 
     def execute_sync(self, request: Request) -> bytes:
         """Run a request in the caller's thread (tests, tools); raises on failure."""
         job = self.prepare(request)
         with releasing(job):
             value = self.scheduler.run_sync(job)
+        if isinstance(request, WriteRequest):
+            self.params.flush(self.job_timeout)  # durable before the ACK, as execute()
         return format_outcome(request, value)
 
     async def probe(self) -> None:

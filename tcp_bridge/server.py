@@ -21,9 +21,10 @@ Connection slots cannot be held hostage (issue 12):
   (:mod:`tcp_bridge.access`; default: loopback) is closed at once, unanswered,
   and logged with its address, before it counts against any limit;
 * **idle timeout**: a connection is closed when it has sent no *request* for
-  ``idle_timeout`` seconds. Only a complete request that parses resets the
-  clock (so does answering one): bytes trickled without ever completing a
-  request, or lines of junk, do not; nor does a client that sends requests
+  ``idle_timeout`` seconds. Only a complete request that parses and is not
+  refused with CAN resets the clock (so does answering one): bytes trickled
+  without ever completing a request, lines of junk, or requests for an axis or
+  command the bridge does not serve (``9R10``, issue 35) do not; nor does a client that sends requests
   but never reads the replies (its writes cannot drain, so nothing is read
   from it any more). The default, 60 s
   (:data:`DEFAULT_IDLE_TIMEOUT`), is far above the polling period of the
@@ -67,8 +68,8 @@ from .engine import Engine
 from .errors import BridgeError
 from .reasons import ReasonLog
 from .tasks import cancel_and_wait
-from .wire import (DEFAULT_MAX_LINE, Line, LineSplitter, Request, format_error_reply, parse_item,
-                   status_for)
+from .wire import (DEFAULT_MAX_LINE, Line, LineSplitter, Request, Status, format_error_reply,
+                   parse_item, status_for)
 
 log = logging.getLogger(__name__)
 debug_log = logging.getLogger("tcp_bridge.debug")
@@ -311,12 +312,15 @@ class BridgeServer:
     async def _answer(self, item: Line) -> Tuple[bytes, bool]:
         """The one place where an exception becomes a reply (CAN or NAK).
 
-        Returns the reply and whether ``item`` was a request that parsed.
+        Returns the reply and whether ``item`` was a request that counts: it parsed,
+        and was not refused with CAN.
         """
         request: Optional[Request] = None
+        counts = False
         try:
             request = parse_item(item)
             reply = await self.engine.execute(request)
+            counts = True
         except asyncio.CancelledError:
             raise
         except Exception as exc:
@@ -327,9 +331,10 @@ class BridgeServer:
                 if self.engine.debug:
                     debug_log.info("error: %s", exc)
             reply = format_error_reply(exc, request)
+            counts = request is not None and status_for(exc) is not Status.CAN
         if self.engine.debug:
             debug_log.info("request %r -> reply %r", item, reply.rstrip(b"\0"))
-        return reply, request is not None
+        return reply, counts
 
     # -- shutdown ----------------------------------------------------------------------------
 

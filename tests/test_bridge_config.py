@@ -76,6 +76,14 @@ MISTAKES = {
                             'sdo_timeout = true\n' + GOOD_AXIS,
                             "[bus.can1]: sdo_timeout: must be a positive number of seconds, "
                             "not the boolean true"),
+    # Issue 35: a lone string is not a list of networks; an unknown URL scheme is a mistake,
+    # not a bus that stays silent.
+    "allow_is_a_string": ('[bridge]\nallow = "10.0.0.0/8"\n' + GOOD_BUS + GOOD_AXIS,
+                          "[bridge]: allow: must be a list of networks such as "
+                          "[\"10.1.2.0/24\"], not str '10.0.0.0/8'"),
+    "epos_url_unknown_scheme": ('[bus.can1]\nbackend = "epos"\nurl = "bogus://x"\n' + GOOD_AXIS,
+                                "[bus.can1]: url: must be a device path or a URL of a known "
+                                "scheme"),
     "state_file_unwritable": ('[bridge]\nstate_file = "blocker/state.json"\n' + GOOD_BUS
                               + GOOD_AXIS, "[bridge] state_file: "),
 }

@@ -426,7 +426,9 @@ def test_unacknowledged_set_point_is_nak_within_the_bound() -> None:
     start = now[0]
     assert ask(engine, "1S00=1").status is Status.NAK
     assert now[0] - start <= 0.2 + 0.002  # ack_timeout is 0.2 s here
-    assert ok(engine, "1R86") == "0"  # never accepted
+    # Never acknowledged, but this fake moves at the edge of bit 4 all the same: its
+    # position demand 6062h left where it stood, so R86 says the move started (issue 35).
+    assert ok(engine, "1R86") == "1"
     assert engine.axes[1].drive.power_cycle_evidence is None  # type: ignore[union-attr]
 
 
@@ -846,8 +848,7 @@ def test_failed_state_file_write_is_still_ack(tmp_path: Any) -> None:
 
 
 def test_a_stuck_state_file_never_stalls_the_bus(tmp_path: Any, monkeypatch: Any) -> None:
-    import threading
-
+    """Issue 35: the ACK of an S command waits for the state file, the bus does not."""
     import tcp_bridge.tables.parameters as parameters
 
     disk = threading.Event()
@@ -864,13 +865,58 @@ def test_a_stuck_state_file_never_stalls_the_bus(tmp_path: Any, monkeypatch: Any
                                 "bus": {"can1": {"backend": "instant"}},
                                 "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
     engine = build_engine(t)
-    assert run_async(engine, "1S05=3").status is Status.ACK  # 6081h, then the arrays
-    assert run_async(engine, "1S22=-1").status is Status.ACK
-    assert run_async(engine, "1R10").status is Status.ACK  # the bus is free ...
-    assert not written.is_set()  # ... while the disk is still stuck (no wall clock)
-    disk.set()
-    engine.close()  # flushes the state file
+
+    async def go() -> List[Reply]:
+        writes = [asyncio.ensure_future(engine.execute(parse_request(line)))
+                  for line in (b"1S05=3", b"1S22=-1")]
+        read = decode_reply(await engine.execute(parse_request(b"1R10")))  # the bus is free ...
+        assert read.status is Status.ACK
+        assert engine.backends[0].nodes[1].values[(0x6081, 0)] == 3000  # ... 6081h written
+        assert not any(w.done() for w in writes)  # ... but no ACK while the disk is stuck
+        assert not written.is_set()
+        disk.set()
+        return [decode_reply(r) for r in await asyncio.gather(*writes)]
+    assert [r.status for r in asyncio.run(go())] == [Status.ACK, Status.ACK]
+    assert written.is_set()  # both ACKs came after the write ended
     assert json.loads(path.read_text())["axes"]["1"]["parameters"] == {"22": -1, "5": 3000}
+    engine.close()
+
+
+def test_an_ack_leaves_only_once_its_value_is_on_disk(tmp_path: Any, monkeypatch: Any) -> None:
+    """Issue 35: at the moment each ACK leaves, the state file already holds its value;
+    writes that arrive together share a write (batched), and each gets its ACK."""
+    import tcp_bridge.tables.parameters as parameters
+
+    path = tmp_path / "s.json"
+    real = parameters.write_atomically
+    writes: List[int] = []
+
+    def counted(p: Any, text: str) -> None:
+        writes.append(1)
+        real(p, text)
+    monkeypatch.setattr(parameters, "write_atomically", counted)
+    t = AxisTable.from_mapping({"bridge": {**FAST, "state_file": str(path)},
+                                "bus": {"can1": {"backend": "instant"}},
+                                "axis": [{"device": 5, "node_id": 1, "position_factor": 1000, "increments_per_revolution": IPR}]})
+    engine = build_engine(t)
+    on_disk_at_ack: List[Tuple[int, int]] = []
+
+    async def one(n: int) -> None:
+        reply = decode_reply(await engine.execute(parse_request(f"1S54={n}".encode())))
+        assert reply.status is Status.ACK
+        on_disk = json.loads(path.read_text())["axes"]["1"]["parameters"]["54"]
+        on_disk_at_ack.append((n, on_disk))
+
+    async def go() -> None:
+        for n in range(5):  # one after the other: each its own write
+            await one(n)
+        await asyncio.gather(*(one(n) for n in range(10, 40)))  # together: batched
+    asyncio.run(go())
+    engine.close()
+    assert on_disk_at_ack[:5] == [(n, n) for n in range(5)]
+    # a batch holds the newest value resolved so far: never one older than the ACK's
+    assert all(disk >= n for n, disk in on_disk_at_ack[5:]), on_disk_at_ack
+    assert len(writes) < 5 + 30  # the 30 concurrent writes shared fsyncs
 
 
 def test_move_nak_comes_within_one_ack_timeout() -> None:

@@ -167,18 +167,29 @@ def test_stream_sends_one_event_per_sample(bridge: Bridge) -> None:
             data += chunk
     head, _, events = data.partition(b"\r\n\r\n")
     assert b"Content-Type: text/event-stream" in head
-    seqs = [json.loads(e[len(b"data: "):])["seq"] for e in events.split(b"\n\n")[:3]]
+    assert events.startswith(b"retry: 3000\n\n")  # EventSource reconnects after 3 s
+    data_events = [e for e in events.split(b"\n\n") if e.startswith(b"data: ")]
+    seqs = [json.loads(e[len(b"data: "):])["seq"] for e in data_events[:3]]
     assert seqs == sorted(seqs) and len(set(seqs)) == 3
 
 
-def test_too_many_streams_answer_503(bridge: Bridge, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_new_stream_takes_the_slot_of_the_oldest(bridge: Bridge,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 35: with every stream slot taken, the oldest stream is closed for the new
+    one (EventSource reconnects after its retry; a client that stopped reading never
+    does), instead of 503 for as long as the old ones stay."""
     # A closed stream is noticed at its next event (a write to a closed socket).
     wait_until(lambda: bridge.http.streams == 0, why="a closed stream still counts")
     monkeypatch.setattr(status_http, "MAX_STREAMS", 1)
-    with socket.create_connection(bridge.http_address, timeout=10) as first:
+    with socket.create_connection(bridge.http_address, timeout=10) as first, \
+            socket.create_connection(bridge.http_address, timeout=10) as second:
         first.sendall(b"GET /api/stream HTTP/1.1\r\n\r\n")
         assert first.recv(100).startswith(b"HTTP/1.1 200")
-        assert bridge.get("/api/stream")[0] == 503
+        second.sendall(b"GET /api/stream HTTP/1.1\r\n\r\n")
+        assert second.recv(100).startswith(b"HTTP/1.1 200")
+        while first.recv(65536):  # the first stream is closed
+            pass
+        assert b"data: " in second.recv(65536) + second.recv(65536)
     wait_until(lambda: bridge.http.streams == 0, why="the closed stream still counts")
 
 
@@ -211,6 +222,50 @@ def test_a_head_never_finished_is_closed(bridge: Bridge, monkeypatch: pytest.Mon
         assert sock.recv(100) == b""  # closed unanswered
 
 
+def test_a_silent_connection_is_closed_after_the_idle_timeout(
+        bridge: Bridge, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(status_http, "IDLE_TIMEOUT", 0.2)
+    with socket.create_connection(bridge.http_address, timeout=20) as sock:
+        sock.sendall(b"GET / HT")  # then silence, long before HEAD_TIMEOUT (5 s)
+        assert sock.recv(100) == b""  # closed unanswered
+
+
+def test_slow_heads_and_dead_streams_do_not_keep_a_real_request_out(bridge: Bridge) -> None:
+    """Issue 35: 16 request heads trickled a byte at a time (never finished) and 8 event
+    streams that never read take every slot; a browser's request is still answered,
+    and its stream still gets events. (Within a second on the development VM; the
+    bound here is ten times that.)"""
+    wait_until(lambda: bridge.http.streams == 0, why="a closed stream still counts")
+    held: List[socket.socket] = []
+    try:
+        for _ in range(8):
+            dead = socket.socket()
+            dead.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # and never read
+            dead.connect(bridge.http_address)
+            dead.sendall(b"GET /api/stream HTTP/1.1\r\n\r\n")
+            held.append(dead)
+        wait_until(lambda: bridge.http.streams == 8, why="the dead streams never started")
+        for _ in range(16):
+            slow = socket.create_connection(bridge.http_address, timeout=10)
+            slow.sendall(b"GET / HTTP/1.1\r\n")  # the rest never comes
+            held.append(slow)
+        started = time.monotonic()
+        status, _, body = bridge.get("/api/axes")
+        assert status == 200 and json.loads(body)["axes"]
+        assert time.monotonic() - started < 10.0
+        with socket.create_connection(bridge.http_address, timeout=10) as page:
+            page.sendall(b"GET /api/stream HTTP/1.1\r\n\r\n")
+            data = b""
+            while b"\n\ndata: " not in data:
+                chunk = page.recv(65536)
+                assert chunk, "the stream was closed"
+                data += chunk
+        assert time.monotonic() - started < 10.0
+    finally:
+        for sock in held:
+            sock.close()
+
+
 def test_clients_outside_the_allow_list_are_closed_unanswered(bridge: Bridge) -> None:
     only = (ipaddress.ip_network("10.9.8.0/24"),)
     other = bridge.run(StatusServer(bridge.http.sampler, "127.0.0.1", 0, allow=only).start())
@@ -222,7 +277,7 @@ def test_clients_outside_the_allow_list_are_closed_unanswered(bridge: Bridge) ->
             except ConnectionResetError:
                 pass  # ... and reset, when the request arrived before the close
     finally:
-        other._server.close()  # not other.close(): the sampler is the fixture's
+        bridge.run(other.close(sampler=False))  # the sampler is the fixture's
 
 
 # -- bus load --------------------------------------------------------------------------

@@ -686,3 +686,29 @@ def test_polling_leaves_one_timer_per_connection() -> None:
             assert len(r.loop._scheduled) <= 5  # type: ignore[attr-defined]
     finally:
         r.stop()
+
+
+def test_requests_answered_can_do_not_keep_a_connection_alive() -> None:
+    """Issue 35: "59R10" parses but names no configured axis (CAN). Sent every 0.05 s,
+    it must not reset the idle clock: the connection is closed after the idle timeout."""
+    r = Running(make_engine(), idle_timeout=0.3)
+    try:
+        with r.connect() as s:
+            start = time.monotonic()
+            closed = False
+            while time.monotonic() - start < 3.0:  # 10x the expected 0.3 s
+                try:
+                    s.sendall(b"59R10\r")
+                    s.settimeout(0.05)
+                    data = s.recv(100)
+                except socket.timeout:
+                    continue
+                except OSError:
+                    closed = True
+                    break
+                if not data:
+                    closed = True
+                    break
+            assert closed, "CAN replies kept the connection alive"
+    finally:
+        r.stop()

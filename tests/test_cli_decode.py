@@ -122,3 +122,13 @@ def test_a_hex_line_of_6_mb_is_decoded_across_the_cut() -> None:
     p = decode(stdin="90 02 " + "AB" * SIX_MB + "\n")
     assert p.returncode == 1 and "Traceback" not in p.stderr  # junk, reported, bounded
     assert max(len(line) for line in p.stdout.splitlines()) < 4000
+
+
+def test_a_frame_cut_before_a_lone_dle_does_not_hide_the_next_one() -> None:
+    """Issue 35: the guide's ReadObject request (2.2.9, Table 2-5) after `90 02 00 90`
+    (a frame cut after its opcode and a lone DLE) decodes as it does alone."""
+    alone = decode("90 02 60 02 01 B0 30 00 2E 62")
+    out = decode("90 02 00 90 90 02 60 02 01 B0 30 00 2E 62")
+    assert out.stdout.splitlines() == [
+        "-- not a frame: Len 144 words exceeds 143 [90 02 00 90]",
+        *alone.stdout.splitlines()]

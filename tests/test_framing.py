@@ -66,6 +66,12 @@ DAMAGED = [
     # A frame cut off right after a lone DLE, the next frame's bytes read as its data.
     ("cut after a lone DLE", bytes.fromhex("90 02 00 04 00 00 00 00 01 90") + GUIDE_ANSWER,
      [CrcError], [ANS_FRAME]),
+    # Issue 35: cut after the opcode and a lone DLE, which pairs with the next sync's DLE
+    # as a stuffed Len of 0x90 (144 words, too long): the length path gives the sync back.
+    ("cut after opcode and a lone DLE", bytes.fromhex("90 02 00 90") + GUIDE_REQUEST,
+     [FrameLengthError], [REQ_FRAME]),
+    ("lone DLE as Len before a bad frame", bytes.fromhex("90 02 00 90") + BAD_CRC + GUIDE_ANSWER,
+     [FrameLengthError, CrcError], [ANS_FRAME]),
 ]
 
 
@@ -190,6 +196,70 @@ def test_a_damaged_frame_never_hides_the_next(opcode: int, data: bytes, draw: st
         del wire[pos:]
     frames, _ = feed_all(FrameDecoder, [bytes(wire) + GUIDE_ANSWER])
     assert frames[-1:] == [ANS_FRAME]
+
+
+def _chunked(stream: bytes, cuts: list[int]) -> list[bytes]:
+    cuts = sorted(c % (len(stream) + 1) for c in cuts)
+    return [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)])]
+
+
+def _reported(errors: list[RemoteProtocolError]) -> list[tuple[str, bytes]]:
+    """Errors with adjacent junk runs merged: how junk is split into runs of at most
+    max_junk bytes is the one thing allowed to depend on the chunking."""
+    out: list[tuple[str, bytes]] = []
+    for e in errors:
+        if out and isinstance(e, JunkBytesError) and out[-1][0] == "JunkBytesError":
+            out[-1] = (out[-1][0], out[-1][1] + e.raw)
+        else:
+            out.append((type(e).__name__, e.raw))
+    return out
+
+
+# Pieces a damaged stream is made of: anything, DLE/STX runs, cut or changed frames.
+_dle_runs = st.lists(st.sampled_from([b"\x90", b"\x02", b"\x90\x90", b"\x00", b"\x90\x02",
+                                      b"\x04", b"\x60", b"\x90\x90\x02"]),
+                     max_size=20).map(b"".join)
+
+
+@st.composite
+def _damaged_frame(draw: st.DrawFn) -> bytes:
+    wire = bytearray(encode_frame(draw(st.integers(0, 255)), draw(st.one_of(words, dle_heavy))))
+    pos = draw(st.integers(2, len(wire) - 1))
+    if draw(st.booleans()):
+        wire[pos] = draw(st.integers(0, 255))
+    else:
+        del wire[pos:]
+    return bytes(wire)
+
+
+any_prefix = st.lists(st.one_of(st.binary(max_size=30), _dle_runs, _damaged_frame()),
+                      max_size=4).map(b"".join)
+
+
+@settings(max_examples=300, deadline=None)
+@given(any_prefix, st.integers(0, 255), st.one_of(words, dle_heavy),
+       st.lists(st.integers(0, 2000), max_size=8))
+def test_any_bytes_then_a_valid_frame_decode_that_frame(
+        prefix: bytes, opcode: int, data: bytes, cuts: list[int]) -> None:
+    """Issue 35: whatever came before, a valid frame is decoded, and the frames and
+    errors are the same fed whole, byte by byte and in chunks of any size."""
+    stream = prefix + encode_frame(opcode, data)
+    whole = feed_all(FrameDecoder, [stream])
+    assert [(f.opcode, f.data, f.crc_ok) for f in whole[0][-1:]] == [(opcode, data, True)]
+    for chunks in ([stream[i:i + 1] for i in range(len(stream))], _chunked(stream, cuts)):
+        frames, errors = feed_all(FrameDecoder, chunks)
+        assert frames == whole[0]
+        assert _reported(errors) == _reported(whole[1])
+
+
+def test_the_issue_35_example_decodes_its_read_object() -> None:
+    """`90 02 00 | 90` is a frame cut after its opcode and a lone DLE; the guide's
+    ReadObject request (2.2.9, Table 2-5) follows and must come out, however fed."""
+    stream = bytes.fromhex("90 02 00 90 90 02 60 02 01 B0 30 00 2E 62")
+    for label, chunks, _ in three_ways(stream):
+        frames, errors = feed_all(FrameDecoder, chunks)
+        assert frames == [REQ_FRAME], label
+        assert errors[0].raw == bytes.fromhex("90 02 00 90") or label == "junk", label
 
 
 def _answer(value: bytes) -> bytes:

@@ -21,7 +21,7 @@ PURE = [
     "tcp_bridge.wire", "tcp_bridge.wire.lines", "tcp_bridge.wire.requests",
     "tcp_bridge.wire.replies", "tcp_bridge.tables.commands", "tcp_bridge.tables.units",
     "tcp_bridge.access", "tcp_bridge.bus.health", "tcp_bridge.status.rows",
-    "tcp_bridge.status.page", "tcp_bridge.backends.ethercat_pdo",
+    "tcp_bridge.status.page", "tcp_bridge.status.slots", "tcp_bridge.backends.ethercat_pdo",
     "epos_link.data_recorder", "tcp_bridge.status.history_csv",
 ]
 FORBIDDEN = ["serial", "usb", "socket", "asyncio", "threading", "time", "select", "can", "canopen"]

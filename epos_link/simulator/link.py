@@ -7,12 +7,17 @@ faults (dropped, corrupted or delayed reply bytes, silence, disconnects).
 Pacing and the frame timeout are described in :mod:`.link_server`'s
 docstring; its names (``LinkServer``, ``LinkOptions``, ``FaultInjector``,
 the constants, ...) are re-exported here, where they were defined before.
+
+Waiting for bytes uses :mod:`selectors` (epoll on Linux), never ``select()``:
+``select()`` refuses descriptors of 1024 and above (FD_SETSIZE), which a
+simulator serving many socketcand clients in the same process reaches, and a
+link thread that raised there would stop answering for good (issue 35).
 """
 from __future__ import annotations
 
 import logging
 import os
-import select
+import selectors
 import socket
 import threading
 import time
@@ -74,6 +79,8 @@ class PtyLink:
         _raw_tty(self.slave)
         _raw_tty(self.master)
         self.path = os.ttyname(self.slave)
+        self._selector = selectors.DefaultSelector()
+        self._selector.register(self.master, selectors.EVENT_READ)
         self._thread = threading.Thread(target=self._run, name="epos-sim-pty", daemon=True)
 
     def start(self) -> "PtyLink":
@@ -81,8 +88,7 @@ class PtyLink:
         return self
 
     def _read(self, timeout: float) -> Optional[bytes]:
-        ready, _, _ = select.select([self.master], [], [], timeout)
-        if not ready:
+        if not self._selector.select(timeout):
             return b""
         try:
             return os.read(self.master, 4096)
@@ -107,6 +113,7 @@ class PtyLink:
         self.server.stop()
         if self._thread.is_alive():
             self._thread.join(2)
+        self._selector.close()
         for fd in (self.master, self.slave):
             try:
                 os.close(fd)
@@ -155,12 +162,15 @@ class TcpLink:
                 continue
             except OSError:
                 return
-            with conn:
+            with conn, selectors.DefaultSelector() as selector:
                 conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 conn.settimeout(None)
+                selector.register(conn, selectors.EVENT_READ)
+                selector.register(self.sock, selectors.EVENT_READ)
 
-                def read(timeout: float, conn: socket.socket = conn) -> Optional[bytes]:
-                    ready, _, _ = select.select([conn, self.sock], [], [], timeout)
+                def read(timeout: float, conn: socket.socket = conn,
+                         selector: selectors.BaseSelector = selector) -> Optional[bytes]:
+                    ready = {key.fileobj for key, _ in selector.select(timeout)}
                     if conn not in ready:
                         if self.sock in ready:
                             self._refuse()  # this host is still connected

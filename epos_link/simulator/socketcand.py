@@ -29,6 +29,16 @@ The rules:
   bounded too (:data:`~epos_link.simulator.socketcand_wire.MAX_COMMAND`);
   garbage is answered ``< error .. >`` or skipped, a client that goes away is
   forgotten.
+* **Bounded by connections and by turns** (issue 35). At most ``max_clients``
+  (:data:`MAX_CLIENTS`) connections are served; one more is told
+  ``< error too many clients ... >`` at once, instead of ``< hi >``, and closed
+  (python-can's client raises ``CanError`` with that text). The loop is asyncio's
+  selector loop (epoll on Linux), so descriptors above 1024 are no problem
+  here, and the cap keeps the process's descriptors, and so those of the
+  simulator's own links, few. Each client is served one read (at most
+  :data:`READ_SIZE` bytes, about 130 frames) per turn, then the loop moves on
+  to the others, so a client that floods the bus delays another client's frame
+  by at most one read's worth per connection, not by its whole backlog.
 * **Loopback by default** (127.0.0.1): the protocol has no authentication, and
   a client can put any frame on the bus.
 * **Chosen:** after ``< ok >`` to ``< rawmode >`` the server sends that client
@@ -69,6 +79,8 @@ from .socketcand_wire import (HI, CommandReader, CommandTooLong, Frame, Session,
                               SocketcandError, error_reply, format_frame)
 
 log = logging.getLogger(__name__)
+MAX_CLIENTS = 64  # connections served at once (see the module docstring)
+READ_SIZE = 4096  # bytes of one client handled per turn
 OUTPUT_LIMIT = 1 << 20  # bytes waiting for one client: ~20000 frames, 2 s of a full 1 Mbit/s bus
 RAW_SETTLE = 0.1  # seconds at most between < ok > to < rawmode > and the first frame (see above)
 DRAIN_LIMIT = 1 << 20  # bytes read from a reset connection's socket (a kernel holds ~200 kB)
@@ -163,7 +175,12 @@ class SocketcandServer:
 
     def __init__(self, channel: str, host: str = DEFAULT_HOST, port: int = 0, *,
                  bus_name: str = BUS_NAME, output_limit: int = OUTPUT_LIMIT,
-                 settle: float = RAW_SETTLE) -> None:
+                 settle: float = RAW_SETTLE, max_clients: int = MAX_CLIENTS) -> None:
+        if isinstance(max_clients, bool) or not isinstance(max_clients, int) or max_clients < 1:
+            raise ValueError(f"max_clients: must be a positive integer, not {max_clients!r}")
+        self.max_clients = max_clients
+        self.refused = 0  # connections refused by the cap
+        self._refusals_logged = 0.0  # loop time of the last refusal log line
         self.channel = channel
         self.bus_name = bus_name
         self.output_limit = output_limit
@@ -287,7 +304,23 @@ class SocketcandServer:
 
     # -- one client --------------------------------------------------------------------------
 
+    def _refuse(self, writer: asyncio.StreamWriter) -> None:
+        """One connection over the cap: told why in the place of ``< hi >``, then closed."""
+        self.refused += 1
+        text = error_reply(f"too many clients: {self.max_clients} connected, the server's cap")
+        writer.write(text.encode("ascii"))
+        writer.close()  # FIN after the line, not RST
+        now = self._loop.time()
+        if now - self._refusals_logged >= 1.0:  # a burst of refusals is one line a second
+            self._refusals_logged = now
+            log.warning("socketcand: refused %s: %d clients connected (the cap); %d refused "
+                        "so far", writer.get_extra_info("peername"), self.max_clients,
+                        self.refused)
+
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if len(self._clients) >= self.max_clients:
+            self._refuse(writer)
+            return
         client = _Client(writer, self.bus_name)
         self._clients.add(client)
         log.info("socketcand client %s connected", client.peer)
@@ -295,7 +328,7 @@ class SocketcandServer:
         self._write(client, HI.encode())
         try:
             while not client.gone:
-                data = await reader.read(4096)
+                data = await reader.read(READ_SIZE)
                 if not data:
                     break
                 if client.held is not None and client.session.receives_frames:
@@ -307,6 +340,9 @@ class SocketcandServer:
                         self._clients.discard(client)
                         client.transport.close()
                         break
+                # Its turn is over: a read returns at once while bytes are buffered, so
+                # without this a flooding client would hold the loop (module docstring).
+                await asyncio.sleep(0)
         except CommandTooLong as exc:
             log.warning("socketcand client %s disconnected: %s", client.peer, exc)
         except (ConnectionError, OSError):
@@ -374,5 +410,6 @@ class SocketcandServer:
         self.close()
 
 
-__all__ = ["BUS_NAME", "DEFAULT_HOST", "DRAIN_LIMIT", "OUTPUT_LIMIT", "RAW_SETTLE", "SocketcandServer",
+__all__ = ["BUS_NAME", "DEFAULT_HOST", "DRAIN_LIMIT", "MAX_CLIENTS", "OUTPUT_LIMIT", "READ_SIZE",
+           "RAW_SETTLE", "SocketcandServer",
            "listen_error", "parse_address"]

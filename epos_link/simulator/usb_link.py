@@ -24,7 +24,7 @@ import json
 import logging
 import os
 import queue
-import select
+import selectors
 import shutil
 import subprocess
 import threading
@@ -137,7 +137,10 @@ class UsbLink:
 
     def _first_message(self) -> dict[str, Any]:
         assert self.proc.stdout is not None
-        ready, _, _ = select.select([self.proc.stdout], [], [], START_TIMEOUT)
+        # selectors, not select(): no limit of 1024 on the descriptor (see link.py).
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.proc.stdout, selectors.EVENT_READ)
+            ready = selector.select(START_TIMEOUT)
         line = self.proc.stdout.readline() if ready else b""
         if not line:
             code = self.proc.poll()

@@ -33,6 +33,26 @@ def open_transport(url: str, **options: Any) -> Transport:
     return transport
 
 
+def known_scheme(url: str) -> bool:
+    """Whether :func:`open_transport` knows how to open ``url``'s scheme: ours, or one
+    of pyserial's URL handlers (``serial.urlhandler.protocol_<scheme>``). A URL
+    without ``://`` is a device path. Checked without opening anything, so a
+    mistyped URL can be told from a device that is not there."""
+    if "://" not in url:
+        return True
+    scheme = url.split("://", 1)[0].lower()
+    if scheme in REGISTRY:
+        return True
+    if not scheme.isidentifier():
+        return False
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is not None
+    except ImportError:  # no pyserial: nothing but our own schemes
+        return False
+
+
 def silence_hint(url: str, baudrate: Optional[int] = None) -> str:
     """What to check when the device on ``url`` gives no answer at all: one clause.
 
@@ -45,4 +65,4 @@ def silence_hint(url: str, baudrate: Optional[int] = None) -> str:
     return f"check the port, the baud rate ({rate} Bd, the EPOS4's setting) and its power"
 
 
-__all__ = ["Transport", "open_transport", "REGISTRY", "silence_hint"]
+__all__ = ["Transport", "known_scheme", "open_transport", "REGISTRY", "silence_hint"]

@@ -35,6 +35,7 @@ class EposBackend:
     def __init__(self, bus: BusConfig, axes: Sequence[AxisConfig] = (), *,
                  client: Optional[Any] = None) -> None:
         from epos_link.client import EposClient
+        from epos_link.transports import known_scheme
 
         self.name = bus.name
         options: Dict[str, Any] = dict(bus.options)
@@ -49,6 +50,10 @@ class EposBackend:
             url = options.pop("url", None)
             if not isinstance(url, str):
                 raise ConfigError(f"bus {bus.name}: the epos backend needs url = \"...\"")
+            if not known_scheme(url):
+                # A mistyped URL is not a device that is away: no silent bus for it.
+                raise ConfigError(f"bus {bus.name}: url: {url!r} has no known scheme (a "
+                                  f"device path, usb://, socket://, rfc2217://, sim://, ...)")
             try:
                 client = EposClient.open(url, gateway_node_id=gateway, **options)
             except Exception as exc:  # TransportError, OSError, bad options

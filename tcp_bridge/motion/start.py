@@ -7,7 +7,8 @@ CiA 402-2 6.7.1), homing by its status bits 13/12/10 (6.6), profile velocity by
 60FFh and the controlword read back (6.9 has no handshake). If the answer to a
 start write is lost, the write may or may not have arrived: the drive is read
 back until that is known, and only a node silent for the whole bound leaves
-the outcome unknown.
+the outcome unknown. A move NAK'd once a start write had gone out is reported
+with what the drive showed after the halt (:mod:`.outcome`: "outcome unknown").
 
 A garbled answer is a lost one: the epos_link client retries a transfer whose
 answer fails its CRC or framing (``CrcError``, ``EposTimeoutError``) once, then
@@ -34,12 +35,14 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING, Callable, Final, List, Sequence, Tuple, TypeVar, Union
+from typing import (TYPE_CHECKING, Callable, Final, List, Optional, Sequence, Tuple, TypeVar,
+                    Union)
 
 from ..cia402_words import (CONTROLWORD, MODES_DISPLAY, TARGET_POSITION, TARGET_VELOCITY, Cw,
                             Deadline, Mode, Sw)
 from ..errors import DeviceFailure, OutcomeUnknown
 from ..bus.sdo import NodeSilent
+from .outcome import NotStarted, report_failed_start
 
 if TYPE_CHECKING:
     from .drive import Cia402
@@ -56,6 +59,9 @@ SOFTWARE_POSITION_LIMIT: Final = 0x607D  # sub 1 min, sub 2 max (CiA 402-2 6.5.2
 class PositionMove:
     target: int
     relative: bool
+    # Position demand 6062h before the start write (set by _prepare): a NAK'd move
+    # whose drive has left it had started (tcp_bridge.motion.outcome).
+    origin: Optional[int] = None
 
 
 @dataclass(frozen=True)
@@ -107,17 +113,21 @@ class MoveStarts:
             (drive, drive._again(partial(drive._prepare, what, deadline), retries))
             for drive, what in moves]
         sent = False
+        accepted = 0
         try:
             for i, (drive, what) in enumerate(prepared):
                 sent = True
                 drive._start(what, deadline)
+                accepted = i + 1
                 on_accept(i)
             for drive, what in prepared:
                 drive._finish(what, deadline)
-        except BaseException:
+        except BaseException as exc:
             if sent:
                 for drive, _ in prepared:
                     drive.halt_or_owe()
+                if isinstance(exc, Exception):
+                    report_failed_start(prepared, accepted, exc, on_accept)
             raise
 
     def _again(self: "Cia402", step: Callable[[], T], deadline: Deadline) -> T:  # type: ignore[misc]
@@ -137,8 +147,9 @@ class MoveStarts:
         move to start: a relative one becomes absolute, from where the axis stands."""
         if isinstance(what, PositionMove):
             self.set_mode(Mode.PROFILE_POSITION, deadline)
-            if what.relative:
-                what = PositionMove(self._standing_position() + what.target, relative=False)
+            origin = self._standing_position()
+            what = PositionMove(origin + what.target if what.relative else what.target,
+                                relative=False, origin=origin)
             self._within_limits(what.target)
             halt = self.port.read(CONTROLWORD, 0) & Cw.HALT
             self.port.write(TARGET_POSITION, 0, what.target)
@@ -191,13 +202,16 @@ class MoveStarts:
         if isinstance(what, VelocityMove):
             # Running unhalted, the new 60FFh is itself the start; halted, the
             # release of halt is. Both are read back if an answer is lost.
-            halted = self._again(lambda: self.port.read(CONTROLWORD, 0), deadline) & Cw.HALT
-            # Issue 30 finding 6: the state is read just before 60FFh goes out, as
-            # before every controlword with enable operation (write_while_enabled). A
-            # drive in QUICK STOP ACTIVE gets nothing but what keeps it there (CiA
-            # 402-2 6.4.1: with 605Ah = 5..8, the EPOS4 default 6, it stays there at
-            # rest), and a running move's new speed is not one it takes.
-            self._again(self.require_enabled, deadline)
+            try:
+                halted = self._again(lambda: self.port.read(CONTROLWORD, 0), deadline) & Cw.HALT
+                # Issue 30 finding 6: the state is read just before 60FFh goes out, as
+                # before every controlword with enable operation (write_while_enabled). A
+                # drive in QUICK STOP ACTIVE gets nothing but what keeps it there (CiA
+                # 402-2 6.4.1: with 605Ah = 5..8, the EPOS4 default 6, it stays there at
+                # rest), and a running move's new speed is not one it takes.
+                self._again(self.require_enabled, deadline)
+            except DeviceFailure as exc:  # before any write of the move's start
+                raise NotStarted(str(exc)) from exc
             self._write_confirmed(TARGET_VELOCITY, what.velocity, deadline)
             if halted:
                 self._write_confirmed(CONTROLWORD, Cw.ENABLE_OPERATION, deadline)
@@ -217,6 +231,8 @@ class MoveStarts:
                         self.port.name, exc)
             self._resolve_edge(what, word, deadline)
             return
+        except DeviceFailure as exc:  # not enabled (not written), or the write's abort
+            raise NotStarted(str(exc)) from exc
         sw = self._await_acceptance(what, deadline)
         if isinstance(what, HomingMove) and sw & Sw.OP_MODE_13:
             raise DeviceFailure(f"{self.port.name}: homing error (statusword 0x{sw:04X})")
@@ -253,14 +269,18 @@ class MoveStarts:
                 log.warning("%s: the start write had arrived; the move started", self.port.name)
                 return
             if deadline.expired():
-                raise DeviceFailure(f"{self.port.name}: the move did not start (controlword "
-                                    f"0x{cw:04X}, statusword 0x{sw:04X})")
+                # Read after the last write of the word: not there means it never took effect.
+                failure = DeviceFailure if arrived else NotStarted
+                raise failure(f"{self.port.name}: the move did not start (controlword "
+                              f"0x{cw:04X}, statusword 0x{sw:04X})")
             if not arrived:
                 # It never arrived: nothing started, so sending it again is the first start.
                 try:
                     self.write_while_enabled(word)
                 except NodeSilent:
                     pass  # read back again
+                except DeviceFailure as exc:  # refused or aborted: still nothing started
+                    raise NotStarted(str(exc)) from exc
                 continue
             self._sleep(self.timing.poll_interval)
 
@@ -290,8 +310,8 @@ class MoveStarts:
                 log.warning("%s: the start write of 0x%04X had arrived", self.port.name, index)
                 return
             if deadline.expired():
-                raise DeviceFailure(f"{self.port.name}: 0x{index:04X} holds {held}, not "
-                                    f"{value}: the move did not start")
+                raise NotStarted(f"{self.port.name}: 0x{index:04X} holds {held}, not "
+                                 f"{value}: the move did not start")
             try:
                 send()
                 return

@@ -12,15 +12,21 @@ they matter here:
 * Any other method: 405 with ``Allow: GET`` (RFC 9110 15.5.6); any other path:
   404; a request line or head that is not HTTP: 400; a head longer than
   :data:`MAX_HEAD` bytes: 431 (RFC 6585 5); a head not complete within
-  :data:`HEAD_TIMEOUT` seconds: closed unanswered. A request body is never read:
+  :data:`HEAD_TIMEOUT` seconds, or silent for :data:`IDLE_TIMEOUT` seconds before it
+  is: closed unanswered. A request body is never read:
   every answer closes the connection (``Connection: close``, RFC 9112 9.6), so
   nothing is pipelined and nothing waits.
 * **Who may connect**: the bridge's own allow-list (``--allow``, ``[bridge] allow``;
   :func:`tcp_bridge.access.is_allowed`), checked as the PSI ports check it: a client
   outside it is closed at once, unanswered, and logged with its address.
-* **Bounded**: at most :data:`MAX_CONNECTIONS` connections at once (the others are
-  closed unanswered, logged) and :data:`MAX_STREAMS` of them streams (the others
-  get 503).
+* **Bounded, and no client holds a slot by saying or reading nothing** (issue 35):
+  at most :data:`MAX_CONNECTIONS` connections at once and :data:`MAX_STREAMS` of
+  them streams; a newcomer takes the slot of the slowest request head, a new
+  stream that of a stalled or else the oldest stream (which reconnects after the
+  ``retry`` it was told), and complete requests are answered at most
+  :data:`~.slots.PAGE_RATE` a second, so that the page cannot slow the PSI ports
+  that share its event loop. The rules are in :mod:`.slots`. Bodies are encoded
+  once per sample, not once per request or per stream.
 
 Nothing here writes to a drive: the only data are the sampler's (:mod:`.sampler`).
 """
@@ -29,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import socket
 from typing import Any, Dict, Final, List, Optional, Sequence, Set, Tuple
 
 from ..access import LOOPBACK, Network, describe, is_allowed
@@ -38,14 +45,18 @@ from .history_csv import FILENAME as CSV_NAME
 from .history_csv import history_csv
 from .page import PAGE
 from .sampler import DEFAULT_PERIOD, Sampler
+from .slots import Phase, RateLimit, Slot, Slots
 
 log = logging.getLogger(__name__)
 
 MAX_HEAD: Final = 8192  # bytes of request line and header fields
-HEAD_TIMEOUT: Final = 10.0  # seconds to send them
+HEAD_TIMEOUT: Final = 5.0  # seconds to send them (a browser sends them at once)
+IDLE_TIMEOUT: Final = 2.0  # seconds without a byte while the head is still coming
 MAX_CONNECTIONS: Final = 16
 MAX_STREAMS: Final = 8
+ACCEPT_BACKLOG: Final = 64  # connections the kernel holds while every slot is busy
 WRITE_TIMEOUT: Final = 10.0  # a client that does not read its answer is dropped
+STREAM_RETRY_MS: Final = 3000  # EventSource's reconnection time, sent with each stream
 
 _REASONS: Final = {200: "OK", 400: "Bad Request", 404: "Not Found",
                    405: "Method Not Allowed", 431: "Request Header Fields Too Large",
@@ -97,34 +108,80 @@ class StatusServer:
         self.sampler = sampler
         self.host, self.port = host, port
         self.allow = allow
-        self._server: Optional[asyncio.Server] = None
+        self._listener: Optional[socket.socket] = None
+        self._acceptor: Optional["asyncio.Task[None]"] = None
+        self._room = asyncio.Event()  # set when a connection ends (a slot may be free)
         self._tasks: Set["asyncio.Task[None]"] = set()
-        self.streams = 0
+        self._slots = Slots()
+        self.limit = RateLimit()
+        self._encoded: Dict[str, Tuple[Any, bytes]] = {}  # route -> (body, its JSON)
+        self.refused = 0  # connections refused for want of a slot
+        self._refusal_logged = float("-inf")
         self._closing = False
 
     @property
+    def streams(self) -> int:
+        return len(self._slots.in_phase(Phase.STREAM))
+
+    @property
     def addresses(self) -> List[Tuple[str, int]]:
-        sockets = self._server.sockets if self._server is not None else ()
-        return [s.getsockname()[:2] for s in sockets or ()]
+        return [self._listener.getsockname()[:2]] if self._listener is not None else []
 
     async def start(self) -> "StatusServer":
-        self._server = await asyncio.start_server(self._serve, self.host, self.port,
-                                                  limit=MAX_HEAD)
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        self._listener = socket.create_server((self.host, self.port), family=family,
+                                              backlog=ACCEPT_BACKLOG)
+        self._listener.setblocking(False)
+        self._acceptor = asyncio.ensure_future(self._accept(self._listener))
         return self
+
+    async def _accept(self, listener: socket.socket) -> None:
+        """Accept a connection only when it can have a slot (a free one, or one whose
+        head is still coming): with every slot busy answering, the next ones wait in
+        the kernel's listen backlog and cost the event loop, which the PSI ports
+        share, nothing at all."""
+        loop = asyncio.get_running_loop()
+        while not self._closing:
+            if len(self._slots) >= MAX_CONNECTIONS and not self._slots.in_phase(Phase.HEAD):
+                self._room.clear()
+                await self._room.wait()
+                continue
+            try:
+                conn, _ = await loop.sock_accept(listener)
+            except OSError as exc:  # e.g. out of descriptors: try again shortly
+                log.warning("status page: accept failed: %s", exc)
+                await asyncio.sleep(0.1)
+                continue
+            task = asyncio.ensure_future(self._connection(conn))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+    async def _connection(self, conn: socket.socket) -> None:
+        try:
+            reader, writer = await asyncio.open_connection(sock=conn, limit=MAX_HEAD)
+        except OSError:
+            conn.close()
+            return
+        await self._serve(reader, writer)
 
     @property
     def url(self) -> str:
         host, port = self.addresses[0]
         return f"http://{'[' + host + ']' if ':' in host else host}:{port}/"
 
-    async def close(self) -> None:
-        """Stop listening, end every connection (streams too), stop the sampler."""
+    async def close(self, *, sampler: bool = True) -> None:
+        """Stop listening, end every connection (streams too), stop the sampler (unless
+        ``sampler`` is False: another server shares it)."""
         self._closing = True
-        if self._server is not None:
-            self._server.close()
+        self._room.set()
+        if self._acceptor is not None:
+            await cancel_and_wait([self._acceptor], 2.0)
+        if self._listener is not None:
+            self._listener.close()
         if await cancel_and_wait(list(self._tasks), 2.0):
             log.warning("status page: %d connections still open after 2 s", len(self._tasks))
-        await self.sampler.close()
+        if sampler:
+            await self.sampler.close()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
@@ -133,20 +190,33 @@ class StatusServer:
                         describe(self.allow))
             writer.close()
             return
-        if len(self._tasks) >= MAX_CONNECTIONS:
-            log.warning("status page: refused %s: %d connections already", peer,
-                        MAX_CONNECTIONS)
-            writer.close()
-            return
         task = asyncio.current_task()
         assert task is not None
-        self._tasks.add(task)
+        loop = asyncio.get_running_loop()
+        slot = Slot((task, writer), loop.time())
+        admitted, victim = self._slots.admit(slot, MAX_CONNECTIONS)
+        if not admitted:  # a head finished since the acceptor looked
+            self.refused += 1
+            if loop.time() - self._refusal_logged >= 1.0:  # a flood is one line a second
+                self._refusal_logged = loop.time()
+                log.warning("status page: refused %s: %d connections already, each with a "
+                            "complete request (%d refused so far)", peer, MAX_CONNECTIONS,
+                            self.refused)
+            writer.transport.abort()  # nothing to say, nothing to wait for
+            return
+        if victim is not None:
+            log.info("status page: %d connections; closed %s, whose request head was still "
+                     "coming after %.1f s, for %s", MAX_CONNECTIONS,
+                     victim.handle[1].get_extra_info("peername"), loop.time() - victim.since,
+                     peer)
+            _end(victim)
         try:
-            await self._answer(reader, writer)
+            await self._answer(slot, reader, writer)
         except (ConnectionError, OSError, asyncio.TimeoutError, asyncio.CancelledError):
             pass
         finally:
-            self._tasks.discard(task)
+            self._slots.remove(slot)
+            self._room.set()
             if writer.transport.get_write_buffer_size():
                 writer.transport.abort()  # a client that does not read: no close handshake
             else:
@@ -161,18 +231,50 @@ class StatusServer:
                       extra: Sequence[Tuple[str, str]] = ()) -> None:
         await self._send(writer, response_head(status, content_type, len(body), extra) + body)
 
-    async def _answer(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _read_head(self, reader: asyncio.StreamReader) -> Optional[bytes]:
+        """The request head; None if the client closed, or fell silent for IDLE_TIMEOUT,
+        or took HEAD_TIMEOUT in all; ``b""`` if it is longer than MAX_HEAD;
+        :class:`NotHttp` at once if it cannot start an HTTP request line."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + HEAD_TIMEOUT
+        head = b""
+        while b"\r\n\r\n" not in head:
+            if len(head) >= MAX_HEAD:
+                return b""
+            left = deadline - loop.time()
+            if left <= 0:
+                return None
+            try:
+                data = await asyncio.wait_for(reader.read(MAX_HEAD), min(IDLE_TIMEOUT, left))
+            except asyncio.TimeoutError:
+                return None
+            if not data:
+                return None
+            if not head and not data[:1].isalpha():
+                # A method is letters (RFC 9110 9.1); a PSI request starts with its axis.
+                raise NotHttp()
+            head += data
+        return head
+
+    async def _answer(self, slot: Slot, reader: asyncio.StreamReader,
+                      writer: asyncio.StreamWriter) -> None:
         try:
-            head = await asyncio.wait_for(self._head(reader), HEAD_TIMEOUT)
-        except asyncio.IncompleteReadError:
-            return  # closed before the end of its head
+            head = await self._read_head(reader)
         except NotHttp:
             # A PSI request sent here by mistake (`tcp-bridge send` to this port): a PSI
             # line ends in CR alone, so its head would never end; say so at once.
             await self._simple(writer, 400, b"not HTTP: this is the bridge's status page; "
                                             b"PSI requests go to its PSI ports (1912, 1913)\n")
             return
-        except asyncio.LimitOverrunError:
+        if head is None:
+            return  # closed, silent or too slow: unanswered
+        loop = asyncio.get_running_loop()
+        slot.enter(Phase.QUEUED, loop.time())
+        wait = self.limit.take(loop.time())
+        if wait:
+            await asyncio.sleep(wait)  # the page's budget (see .slots)
+        slot.enter(Phase.ANSWER, loop.time())
+        if not head:
             await self._simple(writer, 431, b"request head too large\n")
             return
         try:
@@ -186,46 +288,73 @@ class StatusServer:
         if path == "/":
             await self._simple(writer, 200, PAGE.encode("utf-8"), "text/html; charset=utf-8")
         elif path == "/api/axes":
-            await self._json(writer, self.sampler.latest or {"seq": 0, "axes": []})
+            await self._json(writer, path, self.sampler.latest or {"seq": 0, "axes": []})
         elif path == "/api/history":
-            await self._json(writer, self.sampler.history_body())
+            await self._json(writer, path, self.sampler.history_body)
         elif path == "/api/history.csv":
             text = history_csv(self.sampler.history_body()).encode("utf-8")
             await self._simple(writer, 200, text, CSV_TYPE, extra=[
                 ("Content-Disposition", f'attachment; filename="{CSV_NAME}"')])
         elif path == "/api/stream":
-            await self._stream(writer)
+            await self._stream(slot, writer)
         else:
             await self._simple(writer, 404, b"not found\n")
 
-    @staticmethod
-    async def _head(reader: asyncio.StreamReader) -> bytes:
-        """The request head; :class:`NotHttp` at once if it cannot start an HTTP request
-        line (a method is letters, RFC 9110 9.1; a PSI request starts with its axis)."""
-        first = await reader.readexactly(1)
-        if not first.isalpha():
-            raise NotHttp()
-        return first + await reader.readuntil(b"\r\n\r\n")
+    def _encode(self, route: str, body: Any) -> bytes:
+        """JSON of ``body``, encoded once per sample: the sampler makes a new body for
+        each sample (the same object is the same text), and ``history_body`` (a
+        callable here) changes only with the sample count."""
+        cached = self._encoded.get(route)
+        if callable(body):
+            key: Any = self.sampler.seq
+            if cached is not None and cached[0] == key:
+                return cached[1]
+            body = body()
+        else:
+            key = body
+            if cached is not None and cached[0] is key:
+                return cached[1]
+        text = json.dumps(body).encode("utf-8")
+        self._encoded[route] = (key, text)
+        return text
 
-    async def _json(self, writer: asyncio.StreamWriter, body: Dict[str, Any]) -> None:
-        await self._simple(writer, 200, json.dumps(body).encode("utf-8"), "application/json")
+    async def _json(self, writer: asyncio.StreamWriter, route: str, body: Any) -> None:
+        await self._simple(writer, 200, self._encode(route, body), "application/json")
 
-    async def _stream(self, writer: asyncio.StreamWriter) -> None:
-        if self.streams >= MAX_STREAMS:
-            await self._simple(writer, 503, b"too many streams\n", extra=[("Retry-After", "10")])
-            return
-        self.streams += 1
+    async def _stream(self, slot: Slot, writer: asyncio.StreamWriter) -> None:
+        def stalled(other: Slot) -> bool:
+            return bool(other.handle[1].transport.get_write_buffer_size())
+        victim = self._slots.stream(slot, asyncio.get_running_loop().time(), MAX_STREAMS,
+                                    stalled)
+        if victim is not None:
+            log.info("status page: %d streams; closed the %s stream of %s for %s",
+                     MAX_STREAMS, "stalled" if stalled(victim) else "oldest",
+                     victim.handle[1].get_extra_info("peername"),
+                     writer.get_extra_info("peername"))
+            _end(victim)
         queue = self.sampler.subscribe()
         try:
-            await self._send(writer, response_head(200, "text/event-stream"))
+            await self._send(writer, response_head(200, "text/event-stream")
+                             + f"retry: {STREAM_RETRY_MS}\n\n".encode("ascii"))
             if self.sampler.latest is not None and queue.empty():
                 queue.put_nowait(self.sampler.latest)  # the page shows something at once
-            while not self._closing:  # a cancellation may be swallowed (tcp_bridge.tasks)
+            # A cancellation may be swallowed (tcp_bridge.tasks): the flags end it too.
+            while not self._closing and not slot.evicted:
                 body = await queue.get()
-                await self._send(writer, b"data: " + json.dumps(body).encode("utf-8") + b"\n\n")
+                await self._send(writer, b"data: " + self._encode("event", body) + b"\n\n")
         finally:
             self.sampler.unsubscribe(queue)
-            self.streams -= 1
+
+
+def _end(victim: Slot) -> None:
+    """Close the connection of a slot given to another: its socket at once (a client
+    that does not read gets no close handshake), and its task."""
+    task, writer = victim.handle
+    if writer.transport.get_write_buffer_size():
+        writer.transport.abort()
+    else:
+        writer.close()
+    task.cancel()
 
 
 async def open_status_page(engine: Any, host: str, port: int, *,

@@ -18,6 +18,8 @@ from __future__ import annotations
 import math
 from typing import Any, Callable, Final, Mapping, Optional, Tuple
 
+from epos_link.transports import known_scheme
+
 Check = Tuple[Callable[[Any], bool], str]  # (is it good, what it must be)
 
 
@@ -35,11 +37,16 @@ RATE: Final[Check] = (lambda v: _integer(v) and v > 0, "a positive integer (bit/
 COUNT: Final[Check] = (lambda v: _integer(v) and v >= 0, "an integer, 0 or more")
 NODE: Final[Check] = (lambda v: _integer(v) and 1 <= v <= 127, "a node id 1..127 (CiA 301)")
 TEXT: Final[Check] = (lambda v: isinstance(v, str), "a string")
+# Issue 35: a mistyped scheme used to start a bus that never answers; it is a mistake
+# in the table like any other (epos_link.transports.known_scheme: ours and pyserial's).
+URL: Final[Check] = (lambda v: isinstance(v, str) and known_scheme(v),
+                     "a device path or a URL of a known scheme (usb://, socket://, "
+                     "rfc2217://, sim://, ...)")
 
 # The epos_link client's options (EposClient.open); the sim backend reaches the
 # simulator through it, or (link = "can") through the canopen backend.
 _EPOS: Final[Mapping[str, Check]] = {
-    "url": TEXT, "baudrate": RATE, "timeout": SECONDS, "retries": COUNT,
+    "url": URL, "baudrate": RATE, "timeout": SECONDS, "retries": COUNT,
     "gateway_node_id": NODE, "eds": TEXT}
 _CANOPEN: Final[Mapping[str, Check]] = {
     "bitrate": RATE, "sdo_timeout": SECONDS, "sdo_retries": COUNT, "eds": TEXT}

@@ -194,8 +194,8 @@ def _settings(raw: Dict[str, Any], base_dir: Optional[Path], source: str) -> Set
                 path = base_dir / path
             value = path
         if key == "allow":
-            if isinstance(value, str):
-                value = [value]
+            # A list, always: a lone string would be one network where a list of them
+            # was meant (issue 35), so it is the wrong type like any other.
             if not isinstance(value, list) or not value:
                 raise ConfigError(f"{where}: allow: must be a list of networks such as "
                                   f"[\"10.1.2.0/24\"], not {_shown(value)}")

@@ -11,9 +11,12 @@ take effect for the rest.
 
 The file is written by one background thread (:class:`StateFileWriter`), never
 by the caller: a bus worker that stores a parameter must not wait for an
-fsync. Snapshots that pile up while a write is in progress are coalesced,
-the newest wins; :meth:`ParameterStore.close` (called by the engine at
-shutdown) writes the last one.
+fsync. Snapshots that pile up while a write is in progress are batched, the
+newest wins; :meth:`ParameterStore.close` (called by the engine at shutdown)
+writes the last one. The engine holds a write's ACK until the write holding
+its change is on disk (:meth:`ParameterStore.written`; the guarantee is in
+:mod:`tcp_bridge.tables.statefile`). Temporary files a killed bridge left are
+removed at start.
 
 The state file is checked at start-up: one that cannot be written (its
 directory cannot be created, no rights, not a regular file) is refused with
@@ -39,7 +42,8 @@ from typing import Dict, Final, Optional, Tuple
 from .axes import (DEFAULTS, PARAMETER_NAMES, AxisTable, ConfigError, DeviceCode, from_stored,
                    parameter_spec, to_stored)
 from .commands import COMMANDS
-from .statefile import StateFileWriter, check_writable, write_atomically
+from .statefile import (StateFileWriter, check_writable, remove_stale_temporaries,
+                        write_atomically)
 from .units import Number, Scaling, parse_value
 from ..errors import InvalidCommand
 
@@ -58,7 +62,8 @@ class ParameterStore:
     FORMAT: Final = "tcp-bridge-state"
     VERSION: Final = 1
 
-    def __init__(self, table: AxisTable, state_file: Optional[Path] = None) -> None:
+    def __init__(self, table: AxisTable, state_file: Optional[Path] = None, *,
+                 read_only: bool = False) -> None:
         self.table = table
         self.state_file = state_file if state_file is not None else table.settings.state_file
         self._lock = threading.Lock()  # the arrays; held briefly (the event loop reads too)
@@ -79,6 +84,10 @@ class ParameterStore:
             except OSError as exc:
                 raise ConfigError(f"{table.source}: [bridge] state_file: {self.state_file} "
                                   f"cannot be written ({exc.strerror or exc})") from None
+            if read_only:  # a tool beside a running bridge: its temporaries are not stale
+                self._load()
+                return
+            remove_stale_temporaries(self.state_file)
             self._load()
             self._writer = StateFileWriter(self._save, str(self.state_file))
 
@@ -111,6 +120,20 @@ class ParameterStore:
             snapshot = {a: dict(v) for a, v in self._overrides.items() if v}
         if self._writer is not None:
             self._writer.submit(version, snapshot)
+
+    @property
+    def version(self) -> int:
+        """How many S-command values were stored so far (each :meth:`set` adds one)."""
+        with self._lock:
+            return self._version
+
+    async def written(self, version: int, timeout: float) -> bool:
+        """Wait (on the event loop) until the state file write that holds change
+        ``version`` has ended: on disk, or failed and logged. True at once without
+        a state file; False if it has not ended after ``timeout`` seconds."""
+        if self._writer is None:
+            return True
+        return await self._writer.written(version, timeout)
 
     def flush(self, timeout: Optional[float] = None) -> bool:
         """Wait until every value set so far was written (or failed); False on timeout."""
@@ -157,7 +180,12 @@ class ParameterStore:
             except UnicodeDecodeError as exc:
                 raise ValueError(f"not UTF-8 text: byte 0x{raw[exc.start]:02X} at offset "
                                  f"{exc.start}") from None
-            data = json.loads(text)
+            try:
+                data = json.loads(text)
+            except RecursionError:  # json nests by recursion: "[[[[..." too deep for it
+                raise ValueError("nested too deeply to be a state file") from None
+            if not isinstance(data, dict):
+                raise ValueError("not a tcp-bridge state file of version 1")
             if data.get("format") != self.FORMAT or data.get("version") != self.VERSION:
                 raise ValueError("not a tcp-bridge state file of version 1")
             axes = data["axes"]
