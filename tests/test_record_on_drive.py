@@ -195,7 +195,11 @@ def test_the_command_through_sim_tcp_at_1_ms(tmp_path: Path) -> None:
         record = subprocess.Popen([*cli, "record", url.group(0), "--node", "2", *OBJECTS,
                                    "--on-drive", "--period", "0.001", "--duration", "0.4",
                                    "--pre", "0.02", "--trigger", "move", "--csv", str(table),
-                                   "--plot", str(page)],
+                                   "--plot", str(page),
+                                   # The simulated gateway uploads the whole buffer (241 CAN
+                                   # segments through threads) before it answers the initiate;
+                                   # a loaded machine took more than the 0.5 s default (CI).
+                                   "--timeout", "5"],
                                   cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                   text=True)
         assert record.stderr is not None

@@ -248,7 +248,8 @@ class Epos4Simulator:
         assert self._drive_net.notifier is not None  # connect_virtual started it
         self._drive_net.notifier.add_listener(self._listener)
         self.gateway: Optional[CanGateway] = CanGateway(connect_virtual(self.channel),
-                                                        timeout=gateway_timeout)
+                                                        timeout=gateway_timeout,
+                                                        answers=self._answers_sdo)
         self.device = DeviceProtocol(self, node_id=node_id, segment_size=segment_size,
                                      initiate_carries_data=initiate_carries_data)
 
@@ -315,6 +316,11 @@ class Epos4Simulator:
         for nid, sim in self.drives.items():
             if target in (0, nid):
                 sim.nmt(command)
+
+    def _answers_sdo(self, node: int) -> bool:
+        """A drive of this simulator that serves SDO now (Table 3-13, as attach())."""
+        sim = self.drives.get(node)
+        return sim is not None and sim.nmt_state not in (NmtState.STOPPED, NmtState.INITIALISING)
 
     def _boot(self, sim: SimulatedDrive) -> None:
         """After a reset: silent for ``boot_time``, then the boot-up message.

@@ -44,7 +44,10 @@ MOVING_PERIOD = 0.1  # s from poll to poll while the axis moves (or a motion put
 IDLE_PERIOD = 0.5  # s from poll to poll at rest, while someone subscribes
 SLOW_EVERY = 10  # every 10th poll also reads speeds, limits and errors
 OVERDUE = 0.4  # s: a read unanswered this long raises the COMM alarm (issue 33: "within a second")
-FAST = (10, 12, 14, 82, 83)
+# The state and "target reached" before the readback: a sample that says the motion
+# ended has a position read after the drive said so (VAL = RBV at the end of a motion
+# by others took 1.999 of a move to 2.0 when R12 came first, a loaded machine's poll).
+FAST = (10, 82, 83, 12, 14)
 SLOW = (5, 6, 26, 33, 34, 13, 11)
 FAST_TRANSFERS = 6  # R82 costs 2 when bit 10 alone says "reached" (tcp_bridge.plan.reads)
 SLOW_TRANSFERS = 11  # 05 06 26 33 34 13: one each; R11: 603Fh, 60FDh, (+3 on a limit error)
