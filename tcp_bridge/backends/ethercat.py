@@ -253,7 +253,8 @@ class EthercatBackend:
                 log.warning("bus %s: slave %d: watchdog not set: %s", self.name, position, exc)
             self._probe_objects(position, slave)
         cycle = CycleLoop(master, slaves, opts["cycle_ms"] / 1000.0,
-                          al_text=self.soem.al_status_code_to_string)
+                          al_text=self.soem.al_status_code_to_string,
+                          silent_after=opts["watchdog_ms"] / 1000.0)
         for position, layout in self.layouts.items():
             if layout is not None:
                 self._seed(slaves[position], position, cycle.outputs[position], layout)
