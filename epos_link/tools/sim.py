@@ -348,6 +348,23 @@ def _control_usb(link: Any, stop: threading.Event) -> None:
         threading.Thread(target=from_stdin, name="epos-sim-usb-control", daemon=True).start()
 
 
+# An ESC answers a frame in microseconds, in hardware; the simulated one is a process
+# that a loaded host may not run for tens of milliseconds, and SOEM waits 2-10 ms for a
+# frame (a suite at load 7 saw mailbox frames lost and slaves "in NONE"). So the
+# simulator asks the kernel for round-robin real-time scheduling at a low priority
+# (sched(7)); it blocks in select() between frames, so it takes the CPU only to
+# answer, and the kernel's RT throttling (sched_rt_runtime_us) bounds it anyway.
+ESC_PRIORITY = 10
+
+
+def _answer_like_an_esc() -> None:
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ESC_PRIORITY))
+    except (OSError, AttributeError) as exc:  # not root, or not Linux: the host's pace
+        logging.getLogger(__name__).info("epos-link sim: no real-time scheduling (%s): "
+                                         "frames are answered at the host's pace", exc)
+
+
 def _run_ethercat(args: argparse.Namespace, ready: Optional[threading.Event]) -> int:
     """``--ethercat IFACE``: EtherCAT slaves on a raw socket (epos_link.simulator.ethercat)."""
     from ..simulator.ethercat.server import EthercatServer
@@ -363,6 +380,8 @@ def _run_ethercat(args: argparse.Namespace, ready: Optional[threading.Event]) ->
     except QuirkError as exc:
         print(f"epos-link sim: {exc}", file=sys.stderr)
         return 2
+    if threading.current_thread() is threading.main_thread():
+        _answer_like_an_esc()  # before the server's threads start: they inherit it
     try:
         server = EthercatServer(args.ethercat, slaves=args.slaves, quirks=quirks,
                                 events=args.events)
