@@ -21,22 +21,25 @@ The simulator writes what each drive did in every frame to a JSON-lines file
 * no target velocity other than 0 reaches a drive after a crash until a client's
   next velocity move.
 
-Timing: every wait is an event or a bound ten times what it needs; the only
-figure about time (the late CoE transfer's largest gap between frames) is checked
-against a quarter of the transfer's length (a cycle held by the transfer, as
-before issue 31, makes one gap as long as the transfer), and printed; the jitter
-itself is bench/ethercat.py's. The slaves' watchdog is 300 ms, not 100: a test host
+Timing: every wait is an event or a bound ten times what it needs; the late CoE
+transfer is checked on counts (a tenth of the cycles due reach the slave) and on the
+slave's own watchdog (no gap of 300 ms): a cycle held by the transfer, as before
+issue 31, makes one gap as long as the transfer; its figures are printed, and the
+jitter against its goal is bench/ethercat.py's. Which frames a bridge sent after it
+had an input is told by its log line's time against the frames' system time. The slaves' watchdog is 300 ms, not 100: a test host
 loaded with busy loops has stalled a Python master for 400 ms. Skips with the reason without root, iproute2 or pysoem.
 """
 from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -145,6 +148,7 @@ class Bridge:
                    "the bridge never listened")
         assert self.proc.poll() is None, log.read_text()
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=60)
+        self.stale_frames = 0  # held_once_received
 
     def ask(self, line: str) -> Tuple[Status, str]:
         reply = psi_ask(self.sock, line)
@@ -173,6 +177,20 @@ class Bridge:
         at = time.monotonic()
         self.proc.send_signal(signum)
         return at
+
+    def stale_frames_were_frames_without_an_answer(self) -> None:
+        """The frame on its way when a drive stopped carries the old command; each more
+        one needs a cycle whose answer the bridge did not get (held_once_received). Its
+        count of them is logged when it stops (ethercat_cycle: 'without a frame')."""
+        if self.stale_frames <= 1:
+            return
+        self.close()
+        match = re.search(r"ethercat: \d+ cycles, \d+ with a short working counter, (\d+) "
+                          r"without a frame", self.log.read_text())
+        assert match, self.log.read_text()[-2000:]
+        assert int(match.group(1)) >= self.stale_frames - 1, (
+            f"{self.stale_frames} frames of 'enable operation' after the drive stopped, "
+            f"and only {match.group(1)} cycles without an answer")
 
     def close(self) -> None:
         try:
@@ -362,9 +380,22 @@ def test_a_stall_of_the_bridge_mid_line_ends_in_the_drives_own_reaction(
     assert b.state(1) == QSA and b.state(2) == QSA
     assert b.ok("1R82") == "0", "the line was cut short: not in target"
     assert_the_drives_decided(line, stalled, what="stall")
-    log = b.log.read_text()
-    assert "left the cyclic move (lost: slave" in log, log[-2000:]  # the log says why
+    the_runs_ended_and_say_why(b, (1, 2))
     re_enable_moves_nothing(line, b, stalled)
+
+
+def the_runs_ended_and_say_why(b: Bridge, axes: Sequence[int]) -> None:
+    """Build bullet 1: a run in progress on a slave that dropped out has ended, and R86,
+    R11 and the log say so. R86 = 0 for every axis whose drive left (spec 86: the move
+    was not made), R11 is the drive's own word (603Fh: a 6007h = 3 quick stop is no
+    fault, so no error bit), the log names each axis and the drop-out."""
+    for axis in axes:
+        assert b.ok(f"{axis}R86") == "0", f"axis {axis}: R86 still says its move was made"
+        assert b.ok(f"{axis}R11") == "0", f"axis {axis}: R11 shows an error the drive has not"
+    log = b.log.read_text()
+    for axis in axes:
+        said = [t for t in log.splitlines() if f"axis {axis} left its cyclic move" in t]
+        assert said and "(lost: " in said[0], log[-3000:]
 
 
 def test_a_link_down_for_half_a_second_mid_csv(line: Line, bridges: List[Bridge]) -> None:
@@ -384,6 +415,7 @@ def test_a_link_down_for_half_a_second_mid_csv(line: Line, bridges: List[Bridge]
     gone = min(e["t"] for e in line.events(cut) if e["event"] == "leave_op")
     assert not velocity_set_points(line.events(gone)), "a stale 60FFh reached a drive"
     assert_the_drives_decided(line, cut, what="link down")
+    the_runs_ended_and_say_why(b, (2,))
     re_enable_moves_nothing(line, b, cut)
 
 
@@ -406,6 +438,44 @@ def outputs_of(line: Line, slave: int, since: float) -> List[Event]:
     return [e for e in line.events(since) if e["event"] == "outputs" and e["slave"] == slave]
 
 
+def logged_at(b: Bridge, text: str) -> float:
+    """The system time of the bridge's first log line containing ``text`` (its asctime,
+    local time, milliseconds cut: the line was written within the millisecond after)."""
+    for entry in b.log.read_text().splitlines():
+        if text in entry:
+            stamp = datetime.strptime(entry[:23], "%Y-%m-%d %H:%M:%S,%f")
+            return stamp.timestamp()
+    raise AssertionError(f"the bridge never logged {text!r}:\n{b.log.read_text()[-3000:]}")
+
+
+def held_once_received(line: Line, b: Bridge, since: float, state: str, held_command: int
+                       ) -> None:
+    """From the first cycle whose inputs show slave 2 in ``state``, its outputs hold it.
+
+    The bridge decides on the inputs it *received*: its input hook logs "slave 2 left
+    OPERATION ENABLED by itself" in the cycle that received them, after it put the hold
+    into the output image and before the next frame goes out. So every frame the slave
+    took after that line (on the simulator's clock of the same machine, a millisecond
+    more for the log's cut) must hold it: strict, whatever the load. Before it, the
+    frame on its way when the drive stopped carries the old "enable operation" (its
+    answer shows the new state); on a loaded host more can, when an answer came later
+    than the cycle's receive timeout (2 ms) and the bridge had no inputs that cycle:
+    the bridge then counts a cycle without a frame, which the test checks at the end.
+    (Seen under load: two such frames, the bridge's log line after the second.)"""
+    after = outputs_of(line, 2, since)
+    first = next((i for i, e in enumerate(after) if e["after"] == state), None)
+    assert first is not None, f"slave 2 never showed {state}"
+    after = after[first:]
+    decided = logged_at(b, "slave 2 left OPERATION ENABLED by itself") + 0.001
+    once_known = [e for e in after if e["wall"] >= decided]
+    assert once_known, "no frame after the bridge saw it"
+    late = [e for e in once_known if e.get("cw", 0) & 0x8F != held_command]
+    assert not late, f"frames after the bridge had the inputs that do not hold it: {late[:3]}"
+    assert all(e["after"] != "OPERATION_ENABLED" for e in after)
+    stale = [e for e in after if e["wall"] < decided and e.get("cw", 0) & 0x8F == 0x0F]
+    b.stale_frames = len(stale)  # checked against the bridge's own count at its end
+
+
 def test_a_quick_stop_input_on_one_slave_is_held_from_the_first_cycle_that_shows_it(
         line: Line, bridges: List[Bridge]) -> None:
     b = line.bridge()
@@ -414,19 +484,14 @@ def test_a_quick_stop_input_on_one_slave_is_held_from_the_first_cycle_that_shows
     try:
         qs = [e for e in line.events(since) if e["event"] == "quick_stop_input"]
         assert qs
-        after = outputs_of(line, 2, qs[0]["t"])
-        stale = [e for e in after if e.get("cw", 0) & 0x8F == 0x0F]
-        # the frame that was on its way when the input came (its inputs show QSA)
-        assert len(stale) <= 1, stale[:3]
-        held = [e for e in after if "cw" in e][len(stale):]
-        assert held and all(e["cw"] & 0x8F == 0x02 for e in held), held[:3]
-        assert all(e["after"] != "OPERATION_ENABLED" for e in after)
+        held_once_received(line, b, qs[0]["t"], "QUICK_STOP_ACTIVE", 0x02)  # quick stop
     finally:
         b.ok("2S81=10")  # the input released: the drive stays in QUICK STOP ACTIVE
     time.sleep(0.3)
     assert b.state(2) == QSA
     assert_the_drives_decided(line, since, what="quick stop input")
     re_enable_moves_nothing(line, b, since)
+    b.stale_frames_were_frames_without_an_answer()
 
 
 def test_a_fault_on_one_slave_is_held_from_the_first_cycle_that_shows_it(
@@ -434,17 +499,12 @@ def test_a_fault_on_one_slave_is_held_from_the_first_cycle_that_shows_it(
     b = line.bridge()
     bridges.append(b)
     since = stopped_by_itself(line, b, 3, FAULT)  # 3: a following error (epos4.eds 2100h)
-    faults = [e for e in outputs_of(line, 2, since) if e["after"] == "FAULT"]
-    assert faults
-    after = outputs_of(line, 2, faults[0]["t"])
-    stale = [e for e in after if e.get("cw", 0) & 0x8F == 0x0F]
-    assert len(stale) <= 1, stale[:3]
-    held = [e for e in after if "cw" in e][len(stale):]
-    assert held and all(e["cw"] & 0x8F == 0x00 for e in held), held[:3]  # disable voltage
+    held_once_received(line, b, since, "FAULT", 0x00)  # disable voltage
     assert_the_drives_decided(line, since, what="fault")
     window = b.enable(2)  # a fault reset and up, on the client's S04=1
     assert b.state(2) == OE
     assert_the_drives_decided(line, since, [window], what="fault, then S04=1")
+    b.stale_frames_were_frames_without_an_answer()
 
 
 def test_the_whole_line_ramps_down_when_one_slave_stops_itself(
@@ -468,28 +528,42 @@ def test_the_whole_line_ramps_down_when_one_slave_stops_itself(
 
 def test_a_store_answered_one_second_late_delays_no_cycle(line: Line,
                                                           bridges: List[Bridge]) -> None:
+    """Must-show 3: a CoE transfer of 1 s completes with no cycle held and no watchdog
+    trip, while slave 1 itself moves (CSP) and slave 2 runs a velocity move (CSV).
+
+    Counted on the frames the slave took (the simulator's events), with ten times
+    margin, not on the jitter (bench/ethercat.py measures it against its goal): before
+    issue 31 the transfer held the cycle's lock, so the slave took no frame for the
+    whole second (its 300 ms watchdog tripped); here at least a tenth of the cycles
+    due must reach it, no gap may reach its watchdog, and the moves go on."""
     b = line.bridge()
     bridges.append(b)
     enable_and_prepare(b)
     b.ok("2S00=3")  # a velocity move on the other slave while the mailbox waits
     wait_until(lambda: float(b.ok("2R14") or 0) > 5, 30, "the velocity move never started")
+    moving = time.monotonic()
+    b.ok("1S02=30", "1S00=2")  # 30 mm relative in CSP on the slave that stores: 3 s
+    wait_until(lambda: float(b.ok("1R14") or 0) > 5, 30, "the CSP move never started")
     started = time.monotonic()
     b.ok("1S80=0x10100104", "1S81=1702257011")  # 1010h/01 = "save" (CiA 301 7.5.2.13)
     took = time.monotonic() - started
     events = line.events(started)
-    frames = sorted(e["t"] for e in events if e["event"] == "outputs" and e["slave"] == 1)
+    frames = sorted(e["t"] for e in events if e["event"] == "outputs" and e["slave"] == 1
+                    and e["t"] <= started + took)
     gaps = [later - earlier for earlier, later in zip(frames, frames[1:])]
-    print(f"store of parameters: {took:.2f} s; {len(frames)} frames meanwhile, largest gap "
-          f"{max(gaps) * 1000:.1f} ms (cycle {CYCLE * 1000:g} ms, jitter goal "
-          f"{JITTER_GOAL * 1000:g} ms)")
+    due = took / CYCLE
+    late = sum(1 for g in gaps if g > CYCLE + JITTER_GOAL)
+    print(f"store of parameters: {took:.2f} s; slave 1 took {len(frames)} frames of {due:.0f} "
+          f"cycles due, largest gap {max(gaps) * 1000:.1f} ms, {late} later than the cycle "
+          f"and its jitter goal ({CYCLE * 1000:g} + {JITTER_GOAL * 1000:g} ms)")
     assert took >= 0.9, "the slave answered early: the quirk did not act"
-    assert not [e for e in events if e["event"] == "leave_op"], "a watchdog tripped"
-    # Under the cycle's lock (before issue 31) the cycle waited for the whole answer: one
-    # gap as long as the transfer. Here the frames go on; the bound is far from both the
-    # transfer and a tight wall-clock figure (the jitter itself: bench/ethercat.py).
-    assert len(frames) > 0.25 * took / CYCLE, "cycles went missing"
-    assert max(gaps) < took / 4, f"the cycle waited for the transfer ({max(gaps):.3f} s)"
-    assert float(b.ok("2R14")) > 5 and b.state(1) == OE  # the move went on
+    assert not [e for e in line.events(moving) if e["event"] == "leave_op"], "a watchdog tripped"
+    assert len(frames) >= due / 10, f"cycles went missing: {len(frames)} of {due:.0f}"
+    assert max(gaps) < 0.3, f"the cycle waited for the transfer ({max(gaps):.3f} s)"
+    assert float(b.ok("2R14")) > 5 and b.state(1) == OE and b.state(2) == OE  # moves go on
+    wait_until(lambda: b.ok("1R82") == "1", 60, "the CSP move never reached its target")
+    assert b.ok("1R86") == "1"
+    assert_the_drives_decided(line, moving, what="a store during the moves")
     b.ok("2S00=8")
 
 

@@ -121,7 +121,8 @@ class Run:
     failure: Optional[str] = None
     # The node whose drive left the motion, and why (module doc, "a line is one motion").
     ended_by: Optional[Tuple[int, str]] = None
-    on_end: Optional[Callable[[int, str], None]] = None  # called once with ended_by
+    # called once for each node that leaves the run (ended_by is the first of them)
+    on_end: Optional[Callable[[int, str], None]] = None
     out: Set[int] = field(default_factory=set)  # nodes sent nothing more (they left)
 
 
@@ -280,12 +281,17 @@ class CyclicSender:
                         run.ended_by = (node, why)
                         if run in self._runs:
                             run.line = run.line.stop_at(now)
-                if not first:
-                    continue
-                others = [n for n in run.nodes if n != node]
-                log.error("bus %s: node %d left the cyclic move (%s); %s", self.bus, node, why,
-                          f"nodes {others} ramp down on its line" if others
-                          else "its set-point ramps down")
+                # Every drive that leaves is named and recorded, not only the first: after a
+                # stall or a cable pull all slaves of a line drop out together, and each
+                # axis's R86 must say its move was not made (issue 31, build bullet 1).
+                others = [n for n in run.nodes if n != node and n not in run.out]
+                if first:
+                    log.error("bus %s: node %d left the cyclic move (%s); %s", self.bus, node,
+                              why, f"nodes {others} ramp down on its line" if others
+                              else "its set-point ramps down")
+                else:
+                    log.error("bus %s: node %d left the cyclic move too (%s)", self.bus, node,
+                              why)
                 if run.on_end is not None:
                     try:
                         run.on_end(node, why)

@@ -132,15 +132,21 @@ def left_the_line(axes: Sequence[AxisRuntime]) -> Callable[[int, str], None]:
     axis's R86 becomes 0 (its move was not made; the others' moves were accepted and
     are ramped down as by a stop), and the log names the axis (issue 30 finding 2)."""
     by_node = {a.config.node_id: a for a in axes}
+    left: List[AxisRuntime] = []  # the axes that left, in order: the first ended the line
 
     def ended(node: int, why: str) -> None:
         axis = by_node.get(node)
         if axis is None:
             return
         axis.moving_ack = 0
-        others = [a.addr for a in axes if a is not axis]
-        log.error("axis %d left its cyclic move (%s)%s", axis.addr, why,
-                  f"; axes {others} on its line ramp down at 28" if others else "")
+        if left:  # a second drive out of the same line (both slaves lost in a stall)
+            log.error("axis %d left its cyclic move too (%s); its move was not made", axis.addr,
+                      why)
+        else:
+            others = [a.addr for a in axes if a is not axis]
+            log.error("axis %d left its cyclic move (%s)%s", axis.addr, why,
+                      f"; axes {others} on its line ramp down at 28" if others else "")
+        left.append(axis)
     return ended
 
 

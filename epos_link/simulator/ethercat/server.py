@@ -14,7 +14,7 @@ Needs root or CAP_NET_RAW; :func:`open_socket` raises ``PermissionError`` or
 receives one JSON object per line for what each drive did in every cycle
 (:class:`~.drive_app.EthercatDrive`, ``on_event``), flushed at once, so that a
 test in another process sees every cycle of a drive, not only what a master
-polls.
+polls; each with ``t`` (the drives' clock) and ``wall`` (``time.time()``).
 """
 from __future__ import annotations
 
@@ -100,6 +100,10 @@ class EthercatServer:
     def _record(self, event: Dict[str, Any]) -> None:
         events = self._events
         if events is not None:
+            # "wall": the system clock as well, the one a master's log lines carry, so that
+            # a test can tell the frames a master sent before a line of its log from those
+            # it sent after (issue 31: what a bridge did once it had an input).
+            event = {**event, "wall": round(time.time(), 6)}
             events.write(json.dumps(event, separators=(",", ":")) + "\n")
             events.flush()
 
