@@ -369,11 +369,16 @@ QUIET_LIBRARIES = (
 )
 
 
+# The bridge's own loggers whose INFO lines show without -v: the SDO client's, and the
+# summaries a bus logs when it closes (the EtherCAT cycle's counts; issue 34: they needed -v).
+ALWAYS_INFO = ("tcp_bridge.debug", "tcp_bridge.bus.sdo", "tcp_bridge.summary")
+
+
 def configure_logging(verbose: int, debug: bool = False) -> None:
     level = logging.INFO if verbose or debug else logging.WARNING
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
-    logging.getLogger("tcp_bridge.debug").setLevel(logging.INFO)
-    logging.getLogger("tcp_bridge.bus.sdo").setLevel(logging.INFO)
+    for name in ALWAYS_INFO:
+        logging.getLogger(name).setLevel(logging.INFO)
     for name in QUIET_LIBRARIES:
         logging.getLogger(name).setLevel(logging.CRITICAL if verbose < 2 else logging.NOTSET)
 

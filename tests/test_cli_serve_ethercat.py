@@ -3,6 +3,7 @@ on a veth pair where the machine allows it; one line and exit 2 where it does no
 simulated slaves and the veth pair gone after every exit, the second signal's included."""
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import sys
@@ -129,3 +130,32 @@ def test_serve_simulate_ethercat_adds_axes_and_cleans_up(signals: int, status: i
     assert not link_exists(master) and not link_exists(peer)
     wait_until(lambda: not children_serving(peer), timeout=30,
                why="the simulated slaves outlived the bridge")
+
+
+@pytest.mark.skipif(ethercat_sim.unavailable_reason() is not None,
+                    reason=f"EtherCAT on veth: {ethercat_sim.unavailable_reason()}")
+def test_the_cycle_counts_are_printed_at_close_without_v() -> None:
+    """Issue 34 item 7: docs/hardware.md promises the cycle's counts at close (cycles,
+    short working counters, frames lost, overruns, latest start); the user stopped
+    ``serve --simulate --ethercat 1`` with Ctrl-C and saw them only with -v."""
+    proc = subprocess.Popen([sys.executable, "-m", "tcp_bridge.cli", "serve", "--simulate",
+                             "--axes", "1", "--ethercat", "1", "--port", "0",
+                             "--maintenance-port", "-1"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # type: ignore[union-attr]
+        assert "2=ethercat/1" in line, line
+        address = line.split("listening on ")[1].split(" ")[0]
+
+        def answers() -> bool:
+            return bridge_cli.send(address, ["2R10"], timeout=30)[0].status is Status.ACK
+        wait_until(answers, timeout=60, why="the EtherCAT axis never answered")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    counts = [line for line in err.splitlines() if "ethercat: " in line and " cycles, " in line]
+    assert len(counts) == 1, err
+    assert re.search(r"ethercat: [1-9]\d* cycles, \d+ with a short working counter, \d+ without "
+                     r"a frame, \d+ overruns, latest start \d+\.\d\d ms after its deadline$",
+                     counts[0]), counts[0]

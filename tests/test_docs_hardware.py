@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from epos_link.transports.usb import PERMISSION_HELP, UDEV_RULE, UDEV_RULES_FILE
-from tcp_bridge.tables.axes import AxisTable
+from tcp_bridge.tables.axes import AxisTable, simulated_increments_per_revolution
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -50,3 +50,24 @@ def test_the_uaccess_rule_sorts_before_seat_late() -> None:
     name = Path(UDEV_RULES_FILE).name
     assert name < "73-seat-late.rules"
     assert UDEV_RULE in DOC.read_text() and name in DOC.read_text()
+
+
+ECAT_EXAMPLE = ROOT / "tcp_bridge" / "example_ecat_axes.toml"
+
+
+def test_the_guides_ethercat_table_is_the_shipped_one_and_fits_the_simulator() -> None:
+    """Issue 34 item 7: the walkthrough's ``tcp-bridge check --config ecat-axes.toml``
+    named a file that was not shipped, and the page's EtherCAT table (2048 inc/rev) did
+    not run on the simulator (2000). The page shows the shipped file, which loads, names
+    the walkthrough's veth end and the simulator's encoder
+    (tests/test_bridge_ethercat_veth.py checks it against the simulated slave)."""
+    ethercat = [t for t in blocks("toml") if 'backend = "ethercat"' in t and "[[axis]]" in t]
+    assert ethercat == [ECAT_EXAMPLE.read_text()]
+    table = AxisTable.load(ECAT_EXAMPLE)
+    assert table.buses["ethercat"].backend == "ethercat"
+    assert table.buses["ethercat"].options["interface"] == "ecm0"
+    walkthrough = [b for b in blocks("sh") if "--ethercat ecs0" in b]
+    assert len(walkthrough) == 1 and "ip link add ecm0 type veth peer name ecs0" in walkthrough[0]
+    assert "tcp-bridge check --config tcp_bridge/example_ecat_axes.toml" in walkthrough[0]
+    assert [a.increments_per_revolution for a in table.axes.values()] == [
+        simulated_increments_per_revolution()]

@@ -26,10 +26,12 @@ switch or move a drive. A restore to a drive whose statusword (6041h) says
 "operation enabled" is refused unless ``--force``. ``--dry-run`` reads and
 compares but writes nothing. ``--changes-only`` leaves the ``unchanged`` and
 ``skipped`` lines out. A summary line ends every run, an interrupted one
-(Ctrl-C, exit 130) included.
+(Ctrl-C, exit 130) included: a backup then says how far it got and writes no DCF
+(a DCF with part of the objects would restore part of a drive's parameters, and
+an older file of that name is left as it was).
 
 Exit codes: 0 all done, 1 something was refused (or unreadable in a backup),
-130 interrupted (restore: after its summary),
+130 interrupted (after its summary),
 2 usage errors and failures before the first object.
 """
 from __future__ import annotations
@@ -127,11 +129,13 @@ def _failure(exc: EposError) -> tuple[str, Optional[int]]:
     return f"{type(exc).__name__}: {exc}", None
 
 
-def backup(client: EposClient, node: int, od: canopen.ObjectDictionary, progress: Progress) -> list[Outcome]:
-    """Read every readable object into ``od`` (``var.value``); one outcome per object."""
+def backup(client: EposClient, node: int, od: canopen.ObjectDictionary, progress: Progress,
+           outcomes: Optional[list[Outcome]] = None) -> list[Outcome]:
+    """Read every readable object into ``od`` (``var.value``); one outcome per object,
+    appended to ``outcomes`` as it comes (pass a list to keep them when interrupted)."""
     directory = ObjectDirectory(od)
     entries = directory.variables()
-    outcomes = []
+    outcomes = [] if outcomes is None else outcomes
     for i, info in enumerate(entries, 1):
         progress.show(_bar(i, len(entries), f"0x{info.index:04X}/0x{info.subindex:02X} {info.name}"))
         if not info.readable:
@@ -262,8 +266,18 @@ def run(args: argparse.Namespace) -> int:
         node_id = max(args.node, 1)
         if name == "backup":
             od = _load_od(str(args.eds or default_eds()), node_id)
-            with open_client(args) as client:
-                outcomes = backup(client, args.node, od, progress)
+            outcomes: list[Outcome] = []
+            try:
+                with open_client(args) as client:
+                    backup(client, args.node, od, progress, outcomes)
+            except KeyboardInterrupt:
+                progress.clear()
+                total = len(ObjectDirectory(od).variables())
+                where = "standard output" if args.output == "-" else args.output
+                done = _summary(outcomes) if outcomes else "nothing read"
+                print(f"{prog}: interrupted after {len(outcomes)} of {total} objects: {done}; "
+                      f"{where} not written", file=sys.stderr)
+                return 130
             od.node_id = node_id
             od.comments = (f"Backup of node {args.node} at {args.url} by epos-link, "
                            f"{time.strftime('%Y-%m-%d %H:%M:%S')}")

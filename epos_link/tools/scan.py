@@ -19,7 +19,9 @@ Before any node, the EPOS4 on the link is asked for its own device type
 (:func:`~epos_link.tools.common.require_device`): a silent link (wrong port or
 baud rate, no power) is one line and exit 2 within a few seconds, instead of
 every node timing out in turn. Exit codes: 0 some node answered, 2 none did,
-the link is silent, or the command is wrong.
+the link is silent, or the command is wrong; 130 interrupted (Ctrl-C), after one
+line saying which node was being tried and which had answered (a long scan stopped
+half way still says what it found).
 """
 from __future__ import annotations
 
@@ -27,7 +29,8 @@ import argparse
 import json
 import sys
 import time
-from typing import IO
+from dataclasses import dataclass, field
+from typing import IO, Optional
 
 from ..client import DEFAULT_SCAN_TIMEOUT, EposClient, NodeInfo
 from .common import (add_link_options, add_url, guarded, open_client, parse_int, positive_float,
@@ -93,16 +96,36 @@ class Progress:
             self._width = 0
 
 
+@dataclass
+class Tally:
+    """How far a scan got: kept by the caller, so an interrupted scan can say it."""
+    tried: int = 0                      # nodes whose answer (or silence) is known
+    trying: Optional[int] = None        # the node asked last, not yet known
+    found: list[NodeInfo] = field(default_factory=list)
+
+    def interrupted(self, total: int, seconds: float) -> str:
+        found = ", ".join(str(info.node) for info in self.found)
+        return ((f"interrupted while trying node {self.trying}: " if self.trying is not None
+                 else "interrupted: ")
+                + f"{self.tried} of {total} nodes tried in {seconds:.1f} s, "
+                + (f"{len(self.found)} answered ({found})" if self.found else "none answered"))
+
+
 def scan(client: EposClient, nodes: list[int], node_timeout: float, *, json_lines: bool,
-         out: IO[str], progress: Progress) -> list[NodeInfo]:
-    """Try each node, print each one found at once; returns those found."""
+         out: IO[str], progress: Progress, tally: Optional[Tally] = None) -> list[NodeInfo]:
+    """Try each node, print each one found at once; returns those found (also kept in
+    ``tally``, with how far the scan got, for a caller that is interrupted)."""
     now = time.monotonic
     start = now()
-    found: list[NodeInfo] = []
+    tally = Tally() if tally is None else tally
+    found = tally.found
     client.late_answer_timeout = max(client.late_answer_timeout, node_timeout)
     for i, node in enumerate(nodes, 1):
         progress.show(f"scanning node {node} ({i}/{len(nodes)}), {len(found)} found, {now() - start:.1f} s")
-        for info in client.scan([node], timeout=node_timeout):
+        tally.trying = node
+        infos = client.scan([node], timeout=node_timeout)
+        tally.tried, tally.trying = i, None
+        for info in infos:
             found.append(info)
             progress.clear()
             out.write((json.dumps(info.as_dict()) if json_lines else format_node(info)) + "\n")
@@ -117,10 +140,18 @@ def run(args: argparse.Namespace) -> int:
     def body() -> int:
         progress = Progress(sys.stderr, not args.no_progress and sys.stderr.isatty())
         started = time.monotonic()
-        with open_client(args) as client:
-            require_device(client, args.url, args.baud)
-            found = scan(client, args.nodes, args.node_timeout, json_lines=args.json,
-                         out=sys.stdout, progress=progress)
+        tally = Tally()
+        try:
+            with open_client(args) as client:
+                require_device(client, args.url, args.baud)
+                found = scan(client, args.nodes, args.node_timeout, json_lines=args.json,
+                             out=sys.stdout, progress=progress, tally=tally)
+        except KeyboardInterrupt:
+            # Ctrl-C: what the scan learnt so far is one line, not a traceback or nothing.
+            progress.clear()
+            print(f"{prog}: {tally.interrupted(len(args.nodes), time.monotonic() - started)}",
+                  file=sys.stderr)
+            return 130
         if not found:
             print(f"{prog}: no node answered on {args.url}", file=sys.stderr)
             return 2
@@ -132,4 +163,4 @@ def run(args: argparse.Namespace) -> int:
     return guarded(prog, body)
 
 
-__all__ = ["add_arguments", "format_node", "node_list", "run", "scan"]
+__all__ = ["Tally", "add_arguments", "format_node", "node_list", "run", "scan"]

@@ -77,6 +77,9 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 from .cycle_lock import CycleLock
 
 log = logging.getLogger("tcp_bridge.backends.ethercat")
+# The counts at close, which docs/hardware.md ("Cycle time and jitter") promises: the
+# bridge shows this logger's INFO lines without -v (tcp_bridge.cli.ALWAYS_INFO).
+summary_log = logging.getLogger("tcp_bridge.summary")
 
 # pysoem state constants (SOEM ethercattype.h ec_state), repeated so the module
 # and its tests do not need pysoem itself.
@@ -206,9 +209,10 @@ class CycleLoop:
             self._thread.join(timeout=5.0)
             _SWITCH.leave(self)
             s = self.stats
-            log.info("ethercat: %d cycles, %d with a short working counter, %d without a "
-                     "frame, %d overruns, latest start %.2f ms after its deadline", s.cycles,
-                     s.wkc_errors, s.no_frame, s.overruns, s.max_late_ms)
+            summary_log.info("ethercat: %d cycles, %d with a short working counter, %d "
+                             "without a frame, %d overruns, latest start %.2f ms after its "
+                             "deadline", s.cycles, s.wkc_errors, s.no_frame, s.overruns,
+                             s.max_late_ms)
 
     def _run(self) -> None:
         due = self._clock()
