@@ -19,7 +19,7 @@ halt ramp is 0.5 mm and the watch reads each statusword every 20 ms.
 from __future__ import annotations
 
 import logging
-from typing import Callable, Dict, Iterator
+from typing import Any, Callable, Dict, Iterator
 
 import pytest
 
@@ -163,3 +163,37 @@ def test_a_profile_line_whose_drives_stay_enabled_runs_to_its_end(line: Served) 
     b.poll("2R82", "1", 30)
     assert b.ok("1R12") == "3" and b.ok("2R12") == "-3"
     assert b.ok("1R86") == "1" and b.ok("2R86") == "1"
+
+
+class Unplugged:
+    """The link to ``bus``'s gateway falls silent (an unplugged cable): requests arrive
+    and the drives run on, but no answer comes back."""
+
+    def __init__(self, b: Served, bus: str) -> None:
+        self.simulator = b._backend(bus).simulator
+        self.original: Callable[[bytes], Any] = self.simulator.receive
+        self.silent = False
+        self.simulator.receive = self.receive
+
+    def receive(self, data: bytes) -> Any:
+        answer = self.original(data)
+        return [] if self.silent else answer
+
+
+def test_when_one_drive_of_a_profile_line_is_lost_the_other_is_halted(
+        line: Served, caplog: pytest.LogCaptureFixture) -> None:
+    """Lost: the watch's statusword read finds the node silent (no answer within the
+    link's timeouts: 1.5 s seen here). At 4 mm/s the line takes 25 s; axis 1 must stop
+    within 15 s of travel."""
+    b = line
+    b.ok("1S05=4", "2S05=4")
+    link = Unplugged(b, "can2")
+    with caplog.at_level(logging.WARNING):
+        b.ok("1S90=1")
+        _under_way(b)
+        at_event = b.position("can1", 1)
+        link.silent = True
+        rest = _at_rest(b, "can1")
+    link.silent = False
+    assert rest - at_event < 60 * FACTOR, "axis 1 ran on along the line alone"
+    assert "axis 2 (can2 node 1) left its line (lost" in caplog.text, caplog.text
