@@ -45,9 +45,10 @@ from .bus.health import BusHealth, Silence
 from .bus.scheduler import Scheduler
 from .bus.sdo import SdoPort, Switch
 from .bus.shared_reads import BUSY, SHARE_WINDOW, SharedReads
-from .bus.workers import BusWorker
+from .bus.workers import BusWorker, maintaining
 from .errors import BusUnavailable, InvalidCommand
 from .motion import Timing
+from .motion.together import Watch
 from .plan.axis import AxisRuntime
 from .plan.cyclic_moves import install_rest
 from .plan.job import Job
@@ -125,8 +126,13 @@ class Engine:
                                   "(a canopen or ethercat bus, or sim with link = \"can\", can); "
                                   "profile = \"drive\" keeps the drive's own profile modes")
             install_rest(self.axes[addr])  # a cyclic axis rests by its own profile
+        # Between jobs each bus worker probes silent links and watches the drives of its
+        # profile lines and master/slave moves (tcp_bridge.motion.together, issue 30).
         self._workers: Dict[str, BusWorker] = {
-            bus: BusWorker(bus, guard.maintain) for bus, guard in self.guards.items()}
+            bus: BusWorker(bus, maintaining(guard.maintain, Watch(
+                [a.drive for a in self.axes.values()
+                 if a.config.bus == bus and a.drive is not None]).maintain))
+            for bus, guard in self.guards.items()}
         self.shared: Dict[str, SharedReads] = {
             bus: SharedReads(worker, window=share_window) for bus, worker in self._workers.items()}
         for backend in self.backends:  # e.g. PDO mappings restored after a boot-up

@@ -56,6 +56,15 @@ _Item = Optional[Tuple[Optional[asyncio.AbstractEventLoop], Optional["asyncio.Fu
                        Callable[[], Any]]]
 
 
+def maintaining(*parts: Callable[[], Optional[float]]) -> Callable[[], Optional[float]]:
+    """One ``maintenance`` of several (the fail-fast probes, the watch of the drives
+    of a line): each runs; the soonest wait of theirs is the worker's."""
+    def maintain() -> Optional[float]:
+        waits = [w for w in (part() for part in parts) if w is not None]
+        return min(waits) if waits else None
+    return maintain
+
+
 def _resolve(future: "asyncio.Future[Any]", result: Any, error: Optional[BaseException]) -> None:
     if future.done():
         return  # cancelled while the job ran (a timeout): nobody waits for it

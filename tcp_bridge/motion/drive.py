@@ -41,6 +41,7 @@ from .nmt_stopped import answering
 from .recovery import Recovery
 from .start import MoveStarts, OutcomeUnknown
 from .supervision import Supervision
+from .together import Together
 
 log = logging.getLogger("tcp_bridge.motion")
 
@@ -96,6 +97,11 @@ class Cia402(MoveStarts, Lowering, Recovery):
         self.supervision: Optional[Supervision] = None
         # Internal axis in CSP (tcp_bridge.plan.cyclic_moves): its own way to come to rest.
         self.rest: Optional[Callable[[Deadline], None]] = None
+        # Spec 86 "moving acknowledgement": 0 before a move, 1 once this drive accepted
+        # it (:mod:`.start`), 0 again if it left a line it was on (:mod:`.together`).
+        self.moving_ack = 0
+        # The profile line or master/slave move this drive's running move is part of.
+        self.together: Optional[Together] = None
 
     # -- observation (rule 3) -----------------------------------------------------
 
@@ -115,6 +121,9 @@ class Cia402(MoveStarts, Lowering, Recovery):
             self.fell_back = True
             self._tell("suspect")
         self._last_state = state
+        together = self.together
+        if together is not None:  # a line is one motion (issue 30): whoever read it
+            together.seen(self, statusword)
 
     def note_power_cycle(self, why: str) -> None:
         """Evidence of a power cycle: the next enable resets and restores the drive."""

@@ -32,7 +32,7 @@ Nothing here writes to a drive: the halt is
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Callable, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, List, Optional, Sequence, Tuple
 
 from epos_link.cia402 import describe_statusword
 
@@ -81,7 +81,7 @@ def _shown(drive: "Cia402", origin: Optional[int]) -> Tuple[str, bool]:
 
 
 def report_failed_start(prepared: Sequence[Tuple["Cia402", "Move"]], accepted: int,
-                        failure: BaseException, on_accept: Callable[[int], None]) -> None:
+                        failure: BaseException) -> None:
     """After a move failed once its first start write had gone out, and every axis was
     halted: log what is known (module docstring). ``accepted`` axes had taken their
     move; the next one is the one whose start failed."""
@@ -98,7 +98,7 @@ def report_failed_start(prepared: Sequence[Tuple["Cia402", "Move"]], accepted: i
             seen.append(f"{drive.port.name} had started its move and was halted: {shown}")
             continue
         if started:
-            on_accept(i)  # R86 = 1: the drive took the set-point
+            drive.moving_ack = 1  # R86 = 1: the drive took the set-point
         seen.append(f"{drive.port.name} {'started' if started else 'may have started'} its "
                     f"move and was halted: {shown}")
     log.warning("%s: outcome unknown: the move is answered NAK (%s); %s",

@@ -46,6 +46,7 @@ from .outcome import NotStarted, report_failed_start
 
 if TYPE_CHECKING:
     from .drive import Cia402
+    from .together import Together
 
 log = logging.getLogger("tcp_bridge.motion")
 
@@ -90,17 +91,28 @@ class MoveStarts:
     """
 
     def move(self: "Cia402", moves: Sequence[Tuple["Cia402", Move]],  # type: ignore[misc]
-             on_accept: Callable[[int], None]) -> None:
+             together: Optional["Together"] = None) -> None:
         """Start ``moves`` (pairs of drive and move) in one bus job.
 
         Used alone for one axis and together for a master and its slaves on the
         same bus: every axis must be enabled, then each is prepared, then the
         start writes go out back to back, so the axes start within a few SDO
-        round trips of each other. ``on_accept(i)`` is called when axis ``i``
-        accepted its move (R86). Raises on the first failure; once a start write
-        has gone out, every axis of the move is halted first, or owes a halt if
-        it is silent (rule 4: NAK leaves nothing moving).
+        round trips of each other. Each drive's ``moving_ack`` (R86) is 0 from
+        here and 1 once it accepted its move. Raises on the first failure; once
+        a start write has gone out, every axis of the move is halted first, or
+        owes a halt if it is silent (rule 4: NAK leaves nothing moving).
+
+        ``together``: the profile line or master/slave move these drives are part
+        of (:mod:`.together`); each joins it once it accepted its move. A motion
+        that another member already ended is not started here.
         """
+        for drive, _ in moves:
+            drive.moving_ack = 0  # spec 86: 0 before the move ...
+            drive.together = None  # ... which ends its part in any earlier motion
+        if together is not None and together.ended_by is not None:
+            ender, why = together.ended_by
+            raise NotStarted(f"{self.port.name}: not started: {ender.port.name} left the "
+                             f"line ({why})")
         deadline = Deadline(self._clock, self.timing.ack_timeout)  # the whole move's bound
         # Retries before the start write end half-way, so that a move they let start
         # still has half the bound to be proven (read back) before its answer is due.
@@ -119,15 +131,19 @@ class MoveStarts:
                 sent = True
                 drive._start(what, deadline)
                 accepted = i + 1
-                on_accept(i)
+                drive.moving_ack = 1  # ... and 1 once the drive accepted it
+                if together is not None:
+                    together.join(drive)
             for drive, what in prepared:
                 drive._finish(what, deadline)
         except BaseException as exc:
+            if together is not None:
+                together.abandon()  # the request is NAK: its halts are the job's (plan.job)
             if sent:
                 for drive, _ in prepared:
                     drive.halt_or_owe()
                 if isinstance(exc, Exception):
-                    report_failed_start(prepared, accepted, exc, on_accept)
+                    report_failed_start(prepared, accepted, exc)
             raise
 
     def _again(self: "Cia402", step: Callable[[], T], deadline: Deadline) -> T:  # type: ignore[misc]

@@ -56,7 +56,7 @@ class AxisRuntime:
         self.params = params
         self.port = port
         self.drive = Cia402(port, timing, **cia402_options) if port is not None else None  # type: ignore[arg-type]
-        self.moving_ack = 0  # command 86: 1 once the drive accepted a move
+        self._moving_ack = 0  # command 86 of an axis without a drive (the drive keeps it)
         self.velocity_exponent: Optional[int] = None  # EPOS4 60A9h prefix, once read
         self.unit_error: Optional[str] = None
         self.vendor_id: Optional[int] = None  # 1018h/1, read at start-up and after a reset
@@ -68,6 +68,8 @@ class AxisRuntime:
         # whose move this axis follows: a stop or disable of the master acts on them.
         self.followers: Tuple[Follower, ...] = ()
         self.leader: Optional["AxisRuntime"] = None
+        # The axes of the profile line (90) this axis's move is on (tcp_bridge.plan.moves).
+        self.line: Tuple["AxisRuntime", ...] = ()
         # Profile objects of a slave that followed its master's profile, with the
         # values to put back before it moves on its own (tcp_bridge.plan.moves).
         self.borrowed_profile: Dict[ObjectRef, int] = {}
@@ -101,6 +103,19 @@ class AxisRuntime:
         if self.device is DeviceCode.C_DC_MAXON_EPOS4 and self.velocity_exponent is not None:
             return abs(raw) > 10 ** -self.velocity_exponent
         return raw != 0
+
+    @property
+    def moving_ack(self) -> int:
+        """Command 86: 1 once the drive accepted a move, kept by the drive that took it
+        (:meth:`tcp_bridge.motion.Cia402.move`)."""
+        return self.drive.moving_ack if self.drive is not None else self._moving_ack
+
+    @moving_ack.setter
+    def moving_ack(self, value: int) -> None:
+        if self.drive is not None:
+            self.drive.moving_ack = value
+        else:
+            self._moving_ack = value
 
     @property
     def written(self) -> Dict[ObjectRef, int]:
@@ -294,8 +309,9 @@ class AxisRuntime:
         self.followers = ()
 
     def lead(self, followers: Tuple[Follower, ...]) -> None:
-        """A move of this axis started ``followers`` with it."""
+        """A move of this axis started ``followers`` with it (and ends any line it was on)."""
         self.forget_followers()
+        self.line = ()
         if self.leader is not None:  # moving on its own now: its old master no longer leads it
             leader = self.leader
             leader.followers = tuple(f for f in leader.followers if f.axis is not self)

@@ -37,6 +37,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 from ..bus.sdo import NodeSilent
 from ..errors import DeviceFailure, InvalidCommand
 from ..motion import HomingMove, Move, PositionMove, VelocityMove
+from ..motion.together import Together
 from ..tables.commands import COMMANDS, ObjectRef
 from ..tables.units import Number, Scaling
 from .axis import AxisRuntime, Follower
@@ -130,19 +131,48 @@ def _halt(axis: AxisRuntime) -> Optional[Callable[[], None]]:
     return (lambda: halt_all([axis])) if axis.drive is not None else None
 
 
-def plan_stop(master: AxisRuntime, then: Optional[Callable[[], None]] = None) -> MovePlan:
-    """00=8 (``then`` None) or 04=0 (``then`` the disable): the master and the followers
-    its move started are halted; those on its bus in its own job, first."""
+def line_of(axis: AxisRuntime) -> List[AxisRuntime]:
+    """The axes that move as one motion with ``axis`` by the requests so far (arrival
+    order): its followers, its leader, the other axes of its profile line (90). A stop
+    of one of them is a stop of that motion (issue 30, :mod:`tcp_bridge.motion.together`)."""
+    others = [f.axis for f in axis.followers]
+    if axis.leader is not None:
+        others.append(axis.leader)
+    others += [a for a in axis.line if axis in a.line]  # still on the same line
+    return [a for a in dict.fromkeys(others) if a is not axis]
+
+
+def _end_line(axis: AxisRuntime, why: str) -> None:
+    drive = axis.need_drive()
+    together = drive.together
+    if together is not None:
+        together.end(drive, why, by_client=True)
+
+
+def plan_stop(master: AxisRuntime, then: Optional[Callable[[], None]] = None,
+              why: str = "S00=8") -> MovePlan:
+    """00=8 (``then`` None) or 04=0 (``then`` the disable): the master, the followers
+    its move started and the other axes of its line (a profile line or master/slave
+    move, :func:`line_of`: a stop of one of them is a stop of the motion) are halted;
+    those on its bus in its own job, first."""
     master.need_drive()
-    near = [f.axis for f in master.followers if f.axis.config.bus == master.config.bus]
-    far = tuple(Part(f.axis, partial(halt_all, [f.axis]), None)
-                for f in master.followers if f.axis.config.bus != master.config.bus)
-    master.forget_followers()
+    others = line_of(master)
+    for axis in (master, *others):  # the motion ends here: it leads nobody now
+        axis.line = ()
+        axis.forget_followers()
+    near = [a for a in others if a.config.bus == master.config.bus]
+    far = tuple(Part(a, partial(halt_all, [a]), None)
+                for a in others if a.config.bus != master.config.bus)
+    reason = f"stopped by a client's {why} of axis {master.addr}"
     if then is None:
-        return MovePlan(lambda: halt_all([master, *near]), far, stopping=True)
+        def halt() -> None:
+            _end_line(master, reason)
+            halt_all([master, *near])
+        return MovePlan(halt, far, stopping=True)
     disable = then
 
     def halt_then_disable() -> None:
+        _end_line(master, reason)
         if near:
             halt_all(near)
         disable()
@@ -173,8 +203,12 @@ def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) ->
             near.append(slave.axis)
         else:
             profile = stored_profile(master)
-            companions = (Part(slave.axis, _single(slave.axis, slave_move, profile),
-                               _halt(slave.axis)),)
+    # Master and slave are one motion (issue 30): either leaving it halts the other.
+    together = Together([master.need_drive(), slave.axis.need_drive()],
+                        ends_at_target=how != 3) if slave is not None else None
+    if slave is not None and slave.axis.config.bus != master.config.bus:
+        companions = (Part(slave.axis, _single(slave.axis, slave_move, profile, together),
+                           _halt(slave.axis)),)
     master_profile_user = (master.user(5), master.user(6))
     master.lead(followers)
 
@@ -183,7 +217,7 @@ def plan_move(master: AxisRuntime, how: int, axes: Mapping[int, AxisRuntime]) ->
             share_profile(master, near, master_profile_user)
         elif master.borrowed_profile:
             give_back_profile(master)
-        _start(moves)
+        _start(moves, together)
     return MovePlan(move, companions, _halt_near(master, near))
 
 
@@ -192,26 +226,23 @@ def _halt_near(master: AxisRuntime, near: Sequence[AxisRuntime]) -> Callable[[],
     return lambda: halt_all(axes)
 
 
-def _single(axis: AxisRuntime, what: Callable[[], Move],
-            profile: Optional[Profile]) -> Callable[[], None]:
+def _single(axis: AxisRuntime, what: Callable[[], Move], profile: Optional[Profile],
+            together: Optional[Together] = None) -> Callable[[], None]:
     """A companion's move: with its master's profile (a slave) or its own."""
     def move() -> None:
         if profile is not None:
             _write_profile(axis, profile)
         elif axis.borrowed_profile:
             give_back_profile(axis)
-        _start([(axis, what)])
+        _start([(axis, what)], together)
     return move
 
 
-def _start(moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]]) -> None:
+def _start(moves: Sequence[Tuple[AxisRuntime, Callable[[], Move]]],
+           together: Optional[Together] = None) -> None:
+    """The drives start the moves and keep R86 (:meth:`tcp_bridge.motion.Cia402.move`)."""
     pairs = [(axis.need_drive(), what()) for axis, what in moves]
-    for axis, _ in moves:
-        axis.moving_ack = 0  # spec 86: 0 before the move ...
-
-    def accepted(i: int) -> None:
-        moves[i][0].moving_ack = 1  # ... and 1 once the drive accepted it
-    pairs[0][0].move(pairs, accepted)
+    pairs[0][0].move(pairs, together)
 
 
 def _plan_cyclic_move(axis: AxisRuntime, how: int) -> MovePlan:
@@ -244,14 +275,24 @@ def plan_combined(internal: Sequence[AxisRuntime], how: int) -> MovePlan:
         return MovePlan(lambda: None,
                         (Part(first, run, partial(halt_all, list(internal))),))
     parts = []
+    # The axes of a line in their own profile modes are one motion (issue 30).
+    together = Together([a.need_drive() for a in internal]) \
+        if how != 0 and len(internal) > 1 else None
     for axis in internal:
         if how == 0:
-            parts.append(Part(axis, partial(halt_all, [axis]), None))
+            parts.append(Part(axis, partial(_stop_line_axis, axis), None))
             continue
         what = _what(axis, 2, 1, axis.user(2)) if how == 1 else _what(axis, 1, 1, 0.0)
         axis.lead(())
-        parts.append(Part(axis, _single(axis, what, None), _halt(axis)))
+        axis.line = tuple(internal) if together is not None else ()
+        parts.append(Part(axis, _single(axis, what, None, together), _halt(axis)))
     return MovePlan(lambda: None, tuple(parts), stopping=how == 0)
+
+
+def _stop_line_axis(axis: AxisRuntime) -> None:
+    """90=0 of one axis of a profile line: its line is ended by a client (logged)."""
+    _end_line(axis, "stopped by a client's 90=0")
+    halt_all([axis])
 
 
 def stored_profile(master: AxisRuntime) -> Optional[Profile]:
@@ -307,5 +348,6 @@ def give_back_profile(axis: AxisRuntime) -> None:
         del axis.borrowed_profile[obj]
 
 
-__all__ = ["MovePlan", "Part", "give_back_profile", "halt_all", "plan_combined", "plan_move",
+__all__ = ["MovePlan", "Part", "give_back_profile", "halt_all", "line_of", "plan_combined",
+           "plan_move",
            "plan_stop", "share_profile", "stored_profile"]

@@ -11,7 +11,7 @@ from ..tables.commands import CommandKind
 from .axis import AxisRuntime
 from .job import Job
 from .tickets import Ticket
-from .moves import MovePlan, Part, plan_combined, plan_move, plan_stop
+from .moves import MovePlan, Part, line_of, plan_combined, plan_move, plan_stop
 from .reads import READS
 from .resolve import Resolved
 from .writes import WRITES
@@ -80,7 +80,7 @@ def _stopped(r: Resolved, axis: AxisRuntime,
         return ()
     if r.rule == "combined_move":
         return tuple(internal)
-    return (axis, *(f.axis for f in axis.followers))
+    return (axis, *line_of(axis))  # followers, leader, its profile line (issue 30)
 
 
 def _move_plan(r: Resolved, axes: Mapping[int, AxisRuntime],
@@ -94,8 +94,8 @@ def _move_plan(r: Resolved, axes: Mapping[int, AxisRuntime],
         if not internal:
             raise r.invalid("no internal axes with a drive are configured (spec 3.2)")
         return plan_combined(internal, how)
-    if r.rule == "inhibit" and how == 0 and axis.followers:
-        return plan_stop(axis, then=WRITES["inhibit"](r))
+    if r.rule == "inhibit" and how == 0 and line_of(axis):
+        return plan_stop(axis, then=WRITES["inhibit"](r), why="S04=0")
     return None
 
 
