@@ -32,7 +32,6 @@ every exit, the second signal's included.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
 import logging
 import os
@@ -45,9 +44,7 @@ from epos_link.cli_parser import OneLineParser
 
 from .access import LOOPBACK, is_loopback_bind
 from .access import describe as describe_networks
-from .tables.axes import AxisTable, ConfigError, Settings, simulated_table
 from .errors import BridgeError, MalformedReply
-from .tables.statefile import check_writable
 from .cli_types import (address, can_server, http_address, network, optional_port, port,
                         positive_int, positive_seconds)
 from .client import describe, send, split_requests
@@ -55,6 +52,10 @@ from .wire import Status
 
 if TYPE_CHECKING:
     from .server import ServerOptions
+    from .tables.axes import AxisTable, Settings
+
+# asyncio and the axis tables (0.15 s of CPU together) are imported by serve's functions
+# only: `tcp-bridge send` and `--help` are spawned by many tests and scripts (issue 32).
 
 PROG = "tcp-bridge"
 # argparse prints descriptions as they are: plain text, no reST markup.
@@ -81,6 +82,9 @@ def _listen_error(exc: OSError) -> str:
 
 
 def _table(args: argparse.Namespace) -> AxisTable:
+    from .tables.axes import AxisTable, ConfigError, simulated_table
+    from .tables.statefile import check_writable
+
     if args.simulate:
         options = {}
         if args.sim_link:
@@ -118,6 +122,7 @@ def _table(args: argparse.Namespace) -> AxisTable:
 
 
 def _server_options(args: argparse.Namespace, settings: Settings) -> "ServerOptions":
+    from .tables.axes import ConfigError
     from .server import DEFAULT_IDLE_TIMEOUT, ServerOptions
 
     allow = settings.allow if settings.allow is not None else LOOPBACK
@@ -136,8 +141,11 @@ def _server_options(args: argparse.Namespace, settings: Settings) -> "ServerOpti
 
 
 async def _serve(args: argparse.Namespace) -> int:
+    import asyncio
+
     from .engine import build_engine
     from .server import BridgeServer
+    from .tables.axes import ConfigError
 
     table = _table(args)
     options = _server_options(args, table.settings)
@@ -263,9 +271,39 @@ def _send(args: argparse.Namespace) -> int:
 # --- main ----------------------------------------------------------------------------
 
 
-def parser() -> argparse.ArgumentParser:
+COMMANDS = ("serve", "check", "record", "send")
+
+
+def chosen_command(argv: Sequence[str]) -> Optional[str]:
+    """The subcommand ``argv`` names: its first word that is not an option (the top-level
+    parser's only option, --version, takes no value), if it is a command."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in COMMANDS else None
+
+
+class _Version(argparse.Action):
+    """``--version``, looked up only when asked: importlib.metadata costs every spawned
+    ``tcp-bridge`` 0.15 s of CPU otherwise (issue 32)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS,
+                 help: str = "show program's version number and exit") -> None:
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: Optional[str] = None) -> None:
+        print(f"{parser.prog} {version()}")  # stdout, as argparse's own action
+        parser.exit()
+
+
+def parser(argv: Optional[Sequence[str]] = None) -> argparse.ArgumentParser:
+    """The parser; ``check``'s and ``record``'s arguments (whose modules import canopen,
+    python-can and the recorder) are added only when ``argv`` names that command
+    (``None``: every command's), so a spawned ``tcp-bridge serve`` or ``send`` does not
+    pay 0.3 s of CPU for them (issue 32, as epos_link.cli.build_parser)."""
+    wanted = set(COMMANDS) if argv is None else {chosen_command(argv)}
     p = OneLineParser(prog=PROG, description=DESCRIPTION)
-    p.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    p.add_argument("--version", action=_Version)
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("serve", help="serve the PSI gateway protocol (spec rev 2.3)")
     src = s.add_mutually_exclusive_group(required=True)
@@ -324,8 +362,9 @@ def parser() -> argparse.ArgumentParser:
                                    "print one row per axis with its verdict. Writes nothing to "
                                    "any drive. Exit 0 when every axis answers as configured, "
                                    "1 otherwise.")
-    from .check import add_arguments as check_arguments
-    check_arguments(c)
+    if "check" in wanted:
+        from .check import add_arguments as check_arguments
+        check_arguments(c)
     r = sub.add_parser("record", help="record an axis through a running bridge (PSI reads) "
                        "to CSV and plots",
                        description="Sample readable commands of one axis through a running "
@@ -333,8 +372,9 @@ def parser() -> argparse.ArgumentParser:
                                    "client of the drive), with epos-link record's triggers, "
                                    "CSV and plots. Example: tcp-bridge record 127.0.0.1:1913 2 "
                                    "--trigger move --duration 2 --csv move.csv")
-    from .record import add_arguments as record_arguments
-    record_arguments(r)
+    if "record" in wanted:
+        from .record import add_arguments as record_arguments
+        record_arguments(r)
     t = sub.add_parser("send", help="send requests to a gateway and print the replies")
     t.add_argument("address", metavar="HOST:PORT", type=address)
     t.add_argument("request", nargs="+",
@@ -384,7 +424,9 @@ def configure_logging(verbose: int, debug: bool = False) -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = parser().parse_args(argv)
+    if argv is None:
+        argv = sys.argv[1:]
+    args = parser(argv).parse_args(argv)
     if args.command == "send":
         return _send(args)
     if args.command == "record":
@@ -406,6 +448,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             sim = args.ethercat_sim = start(args.ethercat)
         except RuntimeError as exc:
             return _fail(f"--ethercat {exc}")
+    import asyncio
+
+    from .tables.axes import ConfigError
+
     try:
         return asyncio.run(_serve(args))
     except (ConfigError, BridgeError) as exc:

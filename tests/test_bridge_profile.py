@@ -37,18 +37,26 @@ def samples(line: Line, t0: float, dt: float = DT) -> List[Tuple[float, Tuple[Tu
 
 
 def check_continuous(line: Line, limits: Sequence[AxisLimits], t0: float, brake: bool) -> None:
-    """No step: |dv| <= a dt and |dp| <= v dt between consecutive samples, per axis."""
-    previous = None
-    for _, sample in samples(line, t0):
-        for i, (p, v) in enumerate(sample):
-            lim = limits[i]
-            a = max(lim.acceleration, lim.stop_deceleration) if brake else lim.acceleration
-            assert abs(v) <= lim.velocity * (1 + EPS) + EPS
-            if previous is not None:
-                p0, v0 = previous[i]
-                assert abs(v - v0) <= a * DT * (1 + EPS) + EPS
-                assert abs(p - p0) <= lim.velocity * DT * (1 + EPS) + EPS
-        previous = sample
+    """No step: |dv| <= a dt and |dp| <= v dt between consecutive samples, per axis.
+
+    Axis by axis over the samples taken once, the bounds computed once per axis: the
+    same comparisons as sample by sample, in a third of the time (issue 32: the
+    continuity property was the suite's slowest computing test)."""
+    series = [sample for _, sample in samples(line, t0)]
+    for i, lim in enumerate(limits):
+        a = max(lim.acceleration, lim.stop_deceleration) if brake else lim.acceleration
+        v_max = lim.velocity * (1 + EPS) + EPS
+        dv_max = a * DT * (1 + EPS) + EPS
+        dp_max = lim.velocity * DT * (1 + EPS) + EPS
+        p0, v0 = series[0][i]
+        assert abs(v0) <= v_max, (i, 0, v0)
+        for k in range(1, len(series)):
+            p, v = series[k][i]
+            if not (abs(v) <= v_max and abs(v - v0) <= dv_max and abs(p - p0) <= dp_max):
+                assert abs(v) <= v_max, (i, k, v)
+                assert abs(v - v0) <= dv_max, (i, k, v0, v)
+                assert abs(p - p0) <= dp_max, (i, k, p0, p)
+            p0, v0 = p, v
 
 
 @settings(max_examples=200, deadline=None)

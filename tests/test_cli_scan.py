@@ -11,6 +11,8 @@ from typing import Iterator
 
 import pytest
 
+from epos_link.client import EposClient
+from epos_link.errors import DeviceError
 from epos_link.simulator.core import Epos4Simulator
 from epos_link.simulator.link import LinkOptions, TcpLink
 
@@ -138,3 +140,35 @@ def test_bad_node_list_is_a_usage_error() -> None:
     p = subprocess.run([sys.executable, "-m", "epos_link.cli", "scan", "sim://", "--nodes", "1-200"],
                        capture_output=True, text=True, timeout=WAIT)
     assert p.returncode == 2 and "node ids are 0..127" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_the_sim_gateway_timeout_is_what_an_absent_node_costs() -> None:
+    """``epos-link sim --gateway-timeout MS`` (tests/test_docs_commands.py scans 127 nodes
+    with 20 ms): an absent node is answered 0x05040000 only after that long (1 s here,
+    0.3 s without the option), and a node there to answer does so at once. A lower
+    bound only: a loaded machine can make a wait longer, never shorter."""
+    proc = subprocess.Popen([sys.executable, "-m", "epos_link", "sim", "--tcp", "127.0.0.1:0",
+                             "--drives", "2", "--gateway-timeout", "1000"],
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    url = proc.stdout.readline().split()[-1]
+    try:
+        with EposClient.open(url, timeout=WAIT) as client:
+            started = time.monotonic()
+            with pytest.raises(DeviceError) as absent:
+                client.read_object(9, 0x1000, 0)
+            took = time.monotonic() - started
+            found = client.read_object(2, 0x1000, 0)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=WAIT)
+    assert absent.value.code == 0x05040000  # SDO protocol timed out
+    assert took >= 1.0
+    assert found == bytes.fromhex("92010200")  # node 2's device type: it answers at once
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "nan", "60001"])
+def test_a_bad_sim_gateway_timeout_is_one_line(value: str) -> None:
+    p = subprocess.run([sys.executable, "-m", "epos_link", "sim", "--gateway-timeout", value],
+                       capture_output=True, text=True, timeout=WAIT)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "--gateway-timeout" in p.stderr, p.stderr

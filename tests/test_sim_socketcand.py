@@ -210,6 +210,12 @@ def test_a_client_that_does_not_read_is_disconnected_alone(caplog) -> None:
     with Epos4Simulator(1, []) as sim, SocketcandServer(sim.channel, output_limit=1 << 16) as server:
         stuck = RawClient(server, rcvbuf=4096)  # after its handshake it reads nothing
         reader = RawClient(server)  # reads as fast as the server sends
+        # The server's end of the stuck connection gets a small send buffer too: Linux
+        # grows it up to 4 MB on loopback (tcp_wmem), 117,000 frames and 9-17 s of CPU
+        # to fill before the server's own queue counts (issue 32); now about 2,000. The
+        # reader's keeps the kernel's, so a loaded machine cannot make it lag.
+        (end,) = [c for c in server._clients if c.peer == "%s:%d" % stuck.sock.getsockname()[:2]]
+        end.transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
         received: List[int] = []
         done = threading.Event()
 

@@ -80,6 +80,7 @@ from .socketcand_wire import (HI, CommandReader, CommandTooLong, Frame, Session,
 
 log = logging.getLogger(__name__)
 MAX_CLIENTS = 64  # connections served at once (see the module docstring)
+LISTEN_BACKLOG = 4096  # connections the kernel queues before they are accepted
 READ_SIZE = 4096  # bytes of one client handled per turn
 OUTPUT_LIMIT = 1 << 20  # bytes waiting for one client: ~20000 frames, 2 s of a full 1 Mbit/s bus
 RAW_SETTLE = 0.1  # seconds at most between < ok > to < rawmode > and the first frame (see above)
@@ -222,7 +223,10 @@ class SocketcandServer:
 
         def protocol() -> _TakeAllProtocol:
             return _TakeAllProtocol(asyncio.StreamReader(loop=loop), self._serve)
-        return await loop.create_server(protocol, sock=self._sock)
+        # asyncio's backlog of 100 would make a burst of connections (tests/
+        # test_sim_bounded_servers.py opens 2,000) wait for the kernel's SYN retry, 1 s
+        # and more each, once the queue is full: the kernel caps this at somaxconn.
+        return await loop.create_server(protocol, sock=self._sock, backlog=LISTEN_BACKLOG)
 
     @property
     def url(self) -> str:

@@ -40,6 +40,11 @@ from typing import Any, Optional
 from ..errors import EposError
 from .common import baud_rate, parse_float, parse_int
 
+# The simulated gateway's SDO timeout (Epos4Simulator's default): each absent node
+# costs a scan this long. Tests that scan many nodes shorten it (--gateway-timeout);
+# tests/test_cli_scan.py keeps it at this value.
+GATEWAY_TIMEOUT_MS = 300.0
+
 
 def _host_port(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
@@ -87,6 +92,13 @@ def _milliseconds(text: str) -> float:
     value = parse_float(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"a delay is a non-negative number of ms, got {text}")
+    return value
+
+
+def _gateway_ms(text: str) -> float:
+    value = parse_float(text)
+    if not 0 < value <= 60000:
+        raise argparse.ArgumentTypeError(f"a gateway timeout is above 0 and at most 60000 ms, got {text}")
     return value
 
 
@@ -158,6 +170,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also serve the simulated CAN bus over the socketcand protocol "
                              "(python-can: interface socketcand, channel can0); port 0 picks "
                              "one; no authentication: keep it on 127.0.0.1 unless you mean it")
+    parser.add_argument("--gateway-timeout", type=_gateway_ms, default=GATEWAY_TIMEOUT_MS, metavar="MS",
+                        help="how long the gateway waits for an SDO answer before it reports "
+                             f"0x05040000, ms (default {GATEWAY_TIMEOUT_MS:g}); what a scan pays "
+                             "per absent node")
     parser.add_argument("--baud", type=baud_rate, default=None, help="pace replies like a UART at N baud")
     parser.add_argument("--drop", type=_probability, default=0.0, metavar="P",
                         help="drop each reply byte with probability P")
@@ -226,7 +242,9 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> in
             return 2
         trace = CaptureWriter(trace_file, comments=["source: epos-link sim (simulated EPOS4), "
                                                     "TX host to device, RX device to host"])
-    sims = [Epos4Simulator(args.node_id, args.drives) for _ in (args.serial or ["-"])]
+    gateway_timeout = getattr(args, "gateway_timeout", GATEWAY_TIMEOUT_MS) / 1000.0
+    sims = [Epos4Simulator(args.node_id, args.drives, gateway_timeout=gateway_timeout)
+            for _ in (args.serial or ["-"])]
     sim = sims[0]
     can_server = None
     if args.can_server:

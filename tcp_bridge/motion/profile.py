@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Optional, Sequence, Tuple
 
 __all__ = ["AxisLimits", "Line", "Ramp", "Segment", "VelocityRamp", "fractions", "plan_line"]
@@ -89,7 +90,7 @@ class Ramp:
     start: float
     final: float  # the progress it comes to rest at
 
-    @property
+    @cached_property
     def end_time(self) -> float:
         return self.segments[-1].t1 if self.segments else self.start
 
@@ -127,8 +128,11 @@ class Line:
     ramp: Ramp
     stop_rate: float  # d_s: the scalar deceleration of a stop (see the module doc)
 
-    @property
+    @cached_property
     def deltas(self) -> Tuple[float, ...]:
+        # Computed once, like _axes and Ramp.end_time: sample() needs them every cycle
+        # and a test samples a line tens of thousands of times (a frozen dataclass's
+        # fields never change; cached_property writes the instance's __dict__ directly).
         return tuple(e - a for a, e in zip(self.starts, self.ends))
 
     @property
@@ -149,12 +153,21 @@ class Line:
         """The progress ``s(t)`` along the whole line (0 at its start, 1 at its end)."""
         return self.ramp.sample(t)[0]
 
+    @cached_property
+    def _axes(self) -> Tuple[Tuple[float, float], ...]:
+        return tuple(zip(self.starts, self.deltas))
+
+    @cached_property
+    def _at_rest(self) -> Tuple[Tuple[float, float], ...]:
+        return tuple((target, 0.0) for target in self.targets)
+
     def sample(self, t: float) -> Tuple[Tuple[float, float], ...]:
         """(position, velocity) of every axis at ``t``."""
-        if t >= self.end_time:
-            return tuple((target, 0.0) for target in self.targets)
-        s, rate = self.ramp.sample(t)
-        return tuple((a + d * s, d * rate) for a, d in zip(self.starts, self.deltas))
+        ramp = self.ramp
+        if t >= ramp.end_time:
+            return self._at_rest
+        s, rate = ramp.sample(t)
+        return tuple([(a + d * s, d * rate) for a, d in self._axes])
 
     def positions(self, t: float) -> Tuple[float, ...]:
         return tuple(p for p, _ in self.sample(t))
