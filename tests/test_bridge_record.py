@@ -129,7 +129,11 @@ def test_a_bridge_move_recorded_matches_r12_reads_taken_during_it(bridge: SimBri
     curve = [(s.time, float(s.values[0])) for s in samples]
     times = [t for t, _ in curve]
     gaps = [b - a for a, b in zip(times, times[1:])]
-    slack = max(gaps) / 2  # a row is stamped at the middle of its reads, which fill the gap
+    # A row is stamped at the middle of its reads and its R12 is from somewhere within
+    # them: off by up to half their span. A gap between two stamps holds half of each
+    # row's span, so half a span is at most one gap, not half of one (a long row between
+    # two quick ones: seen at load 10-15, 1 ms of travel beyond the half-gap bound).
+    slack = max(gaps)
     during = [r for r in reads if curve[0][0] <= r[0] and r[1] <= curve[-1][0]]
     moving = [r for r in during if 0.0 < r[2] < target]
     assert len(moving) >= 5, f"too few R12 reads during the move: {len(moving)}"

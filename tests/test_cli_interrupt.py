@@ -98,7 +98,9 @@ class Terminal:
 def test_ctrl_c_in_a_scan_says_which_nodes_answered(sim: str, tmp_path: Path) -> None:
     # Nodes 4..127 are absent: each costs the gateway's SDO timeout, so once node 3 is
     # printed the scan is busy for more than 30 s.
-    term = Terminal([*EPOS_LINK, "scan", sim], tmp_path)
+    # --node-timeout 2: a present node's answer 20 ms late must not miss the 0.1 s
+    # default on a loaded machine (the suite at load 10 once found only nodes 1 and 2).
+    term = Terminal([*EPOS_LINK, "scan", sim, "--node-timeout", "2"], tmp_path)
     term.wait_for(rb"scanning node 5 \(5/127\)")
     code, out, last = term.interrupt()
     assert code == 130

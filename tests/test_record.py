@@ -201,12 +201,12 @@ def test_record_a_move_at_5_ms_through_sim_tcp(tmp_path: Path) -> None:
     # benchmark's business (GUIDE.md).
     assert gap is not None and gap >= 0.005 - 0.0005, gap
     assert times[0] < 0 and 0.0 in times and times[-1] >= 1.0 - 1e-6
-    _assert_matches_profile(times, positions)
+    _assert_matches_profile(times, positions, gap)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(plot_panels(page.read_text())) == 3
 
 
-def _assert_matches_profile(times: list[float], positions: list[int]) -> None:
+def _assert_matches_profile(times: list[float], positions: list[int], gap: float) -> None:
     """The recorded positions are the simulator's trapezoid (its EDS defaults: 1000 rpm,
     10000 rpm/s, 2000 inc/rev), started at a time fitted within 15 ms of the trigger."""
     od = load_directory(None, 2).od
@@ -220,7 +220,11 @@ def _assert_matches_profile(times: list[float], positions: list[int]) -> None:
 
     start = min((k * 0.0002 for k in range(-75, 26)), key=lambda s: statistics.median(errors(s)))
     worst = errors(start)
-    # A row's time is the middle of its three reads; the position is the first of them.
-    assert statistics.median(worst) <= 0.002 * v, (start, statistics.median(worst))
-    assert worst[int(0.9 * len(worst))] <= 0.01 * v, (start, worst[-5:])
+    # A row's time is the middle of its three reads; the position is the first of them:
+    # off by up to half the time its reads took, which fill its gap. 2 ms when reads
+    # are quick; half the median gap on a loaded machine (at load 10-15 a median error
+    # of 5 ms of travel with the 2 ms bound alone: a wall-clock bound, not the recorder's).
+    assert statistics.median(worst) <= max(0.002, gap / 2) * v, (start, gap,
+                                                                  statistics.median(worst))
+    assert worst[int(0.9 * len(worst))] <= max(0.01, gap) * v, (start, gap, worst[-5:])
     assert positions[-1] == TARGET
