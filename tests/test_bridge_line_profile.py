@@ -197,3 +197,30 @@ def test_when_one_drive_of_a_profile_line_is_lost_the_other_is_halted(
     link.silent = False
     assert rest - at_event < 60 * FACTOR, "axis 1 ran on along the line alone"
     assert "axis 2 (can2 node 1) left its line (lost" in caplog.text, caplog.text
+
+
+@pytest.mark.parametrize("leaves", [1, 2], ids=["slave", "master"])
+def test_a_gantry_on_one_bus_is_one_motion_too(
+        leaves: int, caplog: pytest.LogCaptureFixture) -> None:
+    """Master (axis 2, node 2) and slave (axis 1, node 1, the EPOS4 itself) on one epos
+    bus start in one job; the drive of one quick-stops mid-move, the other is halted."""
+    from tests.bridge_sim import SimBridge
+
+    b = SimBridge(drives=(2,))
+    try:
+        b.ok("1S04=1", "2S04=1", "2S05=10", "2S06=100", "2S29=1", "2S30=1",
+             f"2S02={DISTANCE}", "2S00=1")
+        wait_until(lambda: b.position(1) > 2 * FACTOR and b.position(2) > 2 * FACTOR, 30,
+                   "the gantry never got going")
+        other = 3 - leaves
+        at_event = b.position(other)
+        with caplog.at_level(logging.WARNING):
+            sim = b.sim.drives[leaves]
+            with sim.lock:
+                sim.store.write_value(0x6040, 0, 0x0002)  # its quick stop
+            wait_until(lambda: b.now(other).velocity == 0, 30, "the other side runs on")
+        assert b.position(other) - at_event < STOPPED_WITHIN, "the gantry racked"
+        assert b.ok(f"{leaves}R86") == "0" and b.ok(f"{other}R86") == "1"
+        assert f"axis {leaves} (can1 node {leaves}) left its line" in caplog.text, caplog.text
+    finally:
+        b.close()
