@@ -300,91 +300,37 @@ class Background:
                 pass
 
 
-class InProcessSim:
-    """A block's ``epos-link sim ... &`` run in this interpreter: the command's own parser
-    and ``epos_link.tools.sim.run`` with the block's arguments, in a thread instead of a
-    process, stopped as Ctrl-C stops it (its stop event). A fresh simulator without an
-    interpreter's start-up (2-6 s at load 12 on 2 cores: python-can, canopen, the EDS),
-    for tests/test_docs_recording_walkthrough.py, which runs one block ten times;
-    tests/test_docs_commands.py runs every block with its processes as printed."""
-
-    PREFIX = f"{BIN}/epos-link sim "
-
-    def __init__(self, text: str) -> None:
-        import contextlib
-        import io
-        import shlex
-
-        from epos_link.cli import build_parser
-        from epos_link.tools import sim
-
-        argv = shlex.split(text)[1:]
-        args = build_parser(argv).parse_args(argv)
-        self.ready, self.done = threading.Event(), threading.Event()
-        self.proc = None  # no process: ``kill %N`` and ``wait %N`` do not apply
-        out = io.StringIO()
-        self.thread = threading.Thread(target=sim.run, args=(args, self.ready, self.done),
-                                       name="doc-block-sim", daemon=True)
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
-            self.thread.start()  # it prints where it listens, then sets ready
-            deadline = time.monotonic() + BACKGROUND_WAIT
-            while not self.ready.wait(0.05) and self.thread.is_alive() \
-                    and time.monotonic() < deadline:
-                pass
-        self.lines = out.getvalue().rstrip("\n").split("\n")
-
-    def first_lines(self, expected: list[str]) -> list[str]:
-        return self.lines
-
-    def stop(self) -> None:
-        self.done.set()
-        self.thread.join(BACKGROUND_WAIT)
-
-
-IN_PROCESS = "runs in the test's interpreter (in_process_sim): no process to signal or wait for"
-
-
-def signal_job(background: list[Background | InProcessSim], sig: signal.Signals, n: int
-               ) -> tuple[list[str], int]:
+def signal_job(background: list[Background], sig: signal.Signals, n: int) -> tuple[list[str], int]:
     """A shell's ``kill -SIG %n``: the process group of the nth ``&`` command; what bash prints."""
     if not 1 <= n <= len(background):
         return [f"bash: kill: %{n}: no such job"], 1
-    proc = background[n - 1].proc
-    if proc is None:
-        return [f"%{n} {IN_PROCESS}"], 1
     try:
-        os.killpg(proc.pid, sig)
+        os.killpg(background[n - 1].proc.pid, sig)
     except ProcessLookupError:
         return [f"bash: kill: %{n}: no such job"], 1
     return [], 0
 
 
-def wait_job(background: list[Background | InProcessSim], n: int) -> tuple[list[str], int]:
+def wait_job(background: list[Background], n: int) -> tuple[list[str], int]:
     """A shell's ``wait %n``: until the nth ``&`` command ends; its status."""
     if not 1 <= n <= len(background):
         return [f"bash: wait: %{n}: no such job"], 127
-    proc = background[n - 1].proc
-    if proc is None:
-        return [f"%{n} {IN_PROCESS}"], 127
     try:
-        return [], proc.wait(COMMAND_TIMEOUT)
+        return [], background[n - 1].proc.wait(COMMAND_TIMEOUT)
     except subprocess.TimeoutExpired:
         return [f"(%{n} still running after {COMMAND_TIMEOUT:g} s)"], 127
 
 
-def run(block: Block, ports: dict[int, int], cwd: Path, scratch: Path | None = None,
-        in_process_sim: bool = False) -> list[str]:
+def run(block: Block, ports: dict[int, int], cwd: Path, scratch: Path | None = None) -> list[str]:
     """Run every command in ``cwd``, ``/tmp/`` being ``scratch`` (default: a temporary
-    directory, removed after), ``epos-link sim ... &`` in this interpreter if
-    ``in_process_sim`` (:class:`InProcessSim`); return a description of each mismatch
-    (empty: the block holds)."""
+    directory, removed after); return a description of each mismatch (empty: it holds)."""
     own = scratch is None
     scratch = Path(tempfile.mkdtemp(prefix="doc-block-")) if scratch is None else scratch
     (scratch / "home").mkdir(parents=True, exist_ok=True)
     env = environment(scratch / "home")
     env["TMPDIR"] = str(scratch)  # a program's own temporary files (sim --usb's umockdev dir)
     failures: list[str] = []
-    background: list[Background | InProcessSim] = []
+    background: list[Background] = []
     status = 0
     try:
         for c in block.commands:
@@ -399,10 +345,7 @@ def run(block: Block, ports: dict[int, int], cwd: Path, scratch: Path | None = N
                 actual, status = wait_job(background, int(waited.group(1)))
                 ok = matches(expected, actual)
             elif c.background:
-                command = BACKGROUND.sub("", text)
-                job: Background | InProcessSim = (
-                    InProcessSim(command) if in_process_sim and command.startswith(InProcessSim.PREFIX)
-                    else Background(command, cwd, env))
+                job = Background(BACKGROUND.sub("", text), cwd, env)
                 background.append(job)
                 actual = job.first_lines(expected)
                 ok = matches([*expected, "..."], actual)

@@ -1,15 +1,11 @@
 """The documented move recording (docs/epos-link.md, "Recording a move") always records the move.
 
-Issue 34, must show 1: the walkthrough's console block, as the docs print it and as
-tests/test_docs_commands.py runs it once, run 10 times in a row, each on a fresh
-simulator, each in a fresh directory with its own /tmp/. The block's ``epos-link sim
-... &`` runs in this interpreter (tests/doc_blocks.py InProcessSim: the command's own
-parser and ``epos_link.tools.sim.run`` with the block's arguments, a new simulator on
-new ports every run), which saves each run an interpreter's start-up and shutdown
-(6.7-7.9 s a run became 4.1-7.3 s here); ``record`` and ``pp_move.py``, the programs
-under test, run as the printed processes. Every run must pass as the block prints it (the trigger row, the last row
-at 20000 inc) and its move.csv must hold the move: positions that leave 0 after the
-trigger and reach the target. Before issue 34 the block passed about half the time:
+Issue 34, must show 1: the walkthrough's console block, exactly as the docs print it
+and as tests/test_docs_commands.py runs it once, run 10 times in a row, each on a
+fresh simulator (the block starts its own ``epos-link sim``), each in a fresh
+directory with its own /tmp/. Every run must pass as the block prints it (the trigger
+row, the last row at 20000 inc) and its move.csv must hold the move: positions that
+leave 0 after the trigger and reach the target. Before issue 34 the block passed about half the time:
 ``examples/pp_move.py`` closed with TPDOs unread, the close was a TCP reset, and its
 last frame (the new set-point) never reached the bus, so ``record`` waited for ever.
 """
@@ -42,7 +38,7 @@ def test_the_walkthrough_is_a_tested_block() -> None:
     assert any("--trigger move" in t for t in texts)
 
 
-# One run takes 4-20 s here (load 4-12 on 2 cores); ten times the slowest, per run.
+# One run takes 6-20 s here (load 4-12 on 2 cores); ten times the slowest, per run.
 @pytest.mark.timeout(RUNS * 200)
 def test_the_recording_walkthrough_records_the_move_10_times_in_a_row(tmp_path: Path) -> None:
     block = walkthrough()
@@ -51,8 +47,7 @@ def test_the_recording_walkthrough_records_the_move_10_times_in_a_row(tmp_path: 
         (tmp_path / f"run{run}").mkdir()
         cwd = doc_blocks.workdir(tmp_path / f"run{run}")
         scratch = tmp_path / f"tmp{run}"  # the block's /tmp/
-        failures = doc_blocks.run(block, doc_blocks.rewrite_ports(block, {}), cwd, scratch,
-                                  in_process_sim=True)
+        failures = doc_blocks.run(block, doc_blocks.rewrite_ports(block, {}), cwd, scratch)
         table = scratch / "move.csv"
         moved = False
         if table.exists():

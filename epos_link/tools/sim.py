@@ -172,12 +172,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="log protocol events")
 
 
-def run(args: argparse.Namespace, ready: Optional[threading.Event] = None,
-        stop: Optional[threading.Event] = None) -> int:
-    """Serve until SIGINT/SIGTERM (in the main thread) or ``stop`` is set; ``ready`` is set
-    once the lines saying where it listens are printed. Outside the main thread (a test
-    that runs the simulator as the command would, without an interpreter's start-up),
-    ``stop`` is how it ends."""
+def run(args: argparse.Namespace, ready: Optional[threading.Event] = None) -> int:
     if getattr(args, "ethercat", None):
         return _run_ethercat(args, ready)
     if getattr(args, "quirk", None) or getattr(args, "events", None):
@@ -275,7 +270,7 @@ def run(args: argparse.Namespace, ready: Optional[threading.Event] = None,
         why = os.strerror(exc.errno) if isinstance(exc, OSError) and exc.errno else exc
         print(f"epos-link sim: cannot listen {where}: {why}", file=sys.stderr)
         return 2
-    stop = threading.Event() if stop is None else stop
+    stop = threading.Event()
 
     def _stop(*_: object) -> None:
         stop.set()
