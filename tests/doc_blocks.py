@@ -16,7 +16,8 @@ The convention, which docs authors follow (README.md repeats it in an HTML comme
   ``&``. ``sleep`` and ``echo $?`` work as in a shell (``$?`` is the previous
   command's status), and so does ``kill [-SIGNAL] %N``: it signals the process
   group of the block's Nth ``&`` command, as an interactive shell's job spec
-  does (``kill -9 %2`` kills the second one, as a crash would).
+  does (``kill -9 %2`` kills the second one, as a crash would), and ``wait %N`` waits
+  for it to end (its status is ``$?``; what it prints meanwhile is not compared).
 * The environment: an HTML comment on the line before the fence,
   ``<!-- doc-test: ENV -->``, where ENV is
   ``none`` (the default: the block brings what it needs, e.g. its own ``&``
@@ -35,19 +36,27 @@ The convention, which docs authors follow (README.md repeats it in an HTML comme
   (``tcp-bridge serve``'s listening ports).
 * Commands run under bash in a fresh directory that holds links to the
   repository's top-level files (``fixtures/...``, ``tcp_bridge/example_axes.toml``
-  resolve; files a block writes stay there), with HOME there too, ``NO_COLOR=1``,
-  ``.venv/bin/`` mapped to this interpreter's scripts directory, and the
-  checkout first on PYTHONPATH. Blocks fenced as ```sh, ```text etc. are not run.
+  resolve), ``NO_COLOR=1``, ``.venv/bin/`` mapped to this interpreter's scripts
+  directory, and the checkout first on PYTHONPATH. Blocks fenced as ```sh, ```text
+  etc. are not run.
+* A block leaves no file in the checkout (issue 34: a reader who followed the pages
+  found move.csv, cap.txt, drive2.dcf, ... in ``git status``): the files it writes
+  go to ``/tmp/``, which is rewritten, in commands and outputs alike, to a scratch
+  directory of the test's own (as ports are, so tests run side by side); HOME is a
+  directory there and TMPDIR is it, so what programs put in /tmp themselves is there. tests/test_docs_commands.py fails a block that writes
+  into its working directory (the reader's checkout) or changes ``git status``.
 """
 from __future__ import annotations
 
 import os
 import queue
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -68,6 +77,8 @@ BACKGROUND = re.compile(r"(?<![&>|])&\s*(#[^\n]*)?$")
 ADDRESS = re.compile(r"\b(127\.0\.0\.1|localhost):(\d+)\b")
 PORT_OPTION = re.compile(r"(--(?:maintenance-)?port[ =])(\d+)\b")
 JOB_KILL = re.compile(r"^kill(?:\s+-(\w+))?\s+%(\d+)\s*(?:#.*)?$")
+JOB_WAIT = re.compile(r"^wait\s+%(\d+)\s*(?:#.*)?$")
+TMP = re.compile(r"(?<![\w./~-])/tmp/")
 
 
 @dataclass
@@ -199,7 +210,7 @@ def rewrite_ports(block: Block, given: dict[int, int]) -> dict[int, int]:
     return ports
 
 
-def localise(text: str, ports: dict[int, int]) -> str:
+def localise(text: str, ports: dict[int, int], scratch: Path | None = None) -> str:
     def address(m: re.Match[str]) -> str:
         port = int(m.group(2))
         return f"{m.group(1)}:{ports.get(port, port)}"
@@ -208,6 +219,8 @@ def localise(text: str, ports: dict[int, int]) -> str:
         port = int(m.group(2))
         return f"{m.group(1)}{ports.get(port, port)}"
     text = PORT_OPTION.sub(option, ADDRESS.sub(address, text))
+    if scratch is not None:
+        text = TMP.sub(f"{scratch}/", text)
     return text.replace(".venv/bin/", f"{BIN}/")
 
 
@@ -298,19 +311,38 @@ def signal_job(background: list[Background], sig: signal.Signals, n: int) -> tup
     return [], 0
 
 
-def run(block: Block, ports: dict[int, int], cwd: Path) -> list[str]:
-    """Run every command; return a description of each mismatch (empty: the block holds)."""
-    env = environment(cwd)
+def wait_job(background: list[Background], n: int) -> tuple[list[str], int]:
+    """A shell's ``wait %n``: until the nth ``&`` command ends; its status."""
+    if not 1 <= n <= len(background):
+        return [f"bash: wait: %{n}: no such job"], 127
+    try:
+        return [], background[n - 1].proc.wait(COMMAND_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        return [f"(%{n} still running after {COMMAND_TIMEOUT:g} s)"], 127
+
+
+def run(block: Block, ports: dict[int, int], cwd: Path, scratch: Path | None = None) -> list[str]:
+    """Run every command in ``cwd``, ``/tmp/`` being ``scratch`` (default: a temporary
+    directory, removed after); return a description of each mismatch (empty: it holds)."""
+    own = scratch is None
+    scratch = Path(tempfile.mkdtemp(prefix="doc-block-")) if scratch is None else scratch
+    (scratch / "home").mkdir(parents=True, exist_ok=True)
+    env = environment(scratch / "home")
+    env["TMPDIR"] = str(scratch)  # a program's own temporary files (sim --usb's umockdev dir)
     failures: list[str] = []
     background: list[Background] = []
     status = 0
     try:
         for c in block.commands:
-            text = localise(c.text, ports)
-            expected = [localise(line, ports) for line in c.expected]
+            text = localise(c.text, ports, scratch)
+            expected = [localise(line, ports, scratch) for line in c.expected]
             kill = job_kill(text)
+            waited = JOB_WAIT.match(text.strip())
             if kill is not None:
                 actual, status = signal_job(background, *kill)
+                ok = matches(expected, actual)
+            elif waited is not None:
+                actual, status = wait_job(background, int(waited.group(1)))
                 ok = matches(expected, actual)
             elif c.background:
                 job = Background(BACKGROUND.sub("", text), cwd, env)
@@ -334,4 +366,6 @@ def run(block: Block, ports: dict[int, int], cwd: Path) -> list[str]:
     finally:
         for job in background:
             job.stop()
+        if own:
+            shutil.rmtree(scratch, ignore_errors=True)
     return failures

@@ -9,6 +9,7 @@ run by another named test.
 """
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import signal
@@ -74,8 +75,25 @@ def test_console_block(block: Block, request: pytest.FixtureRequest, tmp_path: P
         given = request.getfixturevalue("bridge_sim")
     elif block.env == "sim-tcp":
         given = request.getfixturevalue("sim_tcp")
-    failures = run(block, rewrite_ports(block, given), workdir(tmp_path))
+    cwd = workdir(tmp_path)
+    links, status = set(os.listdir(cwd)), git_status()
+    failures = run(block, rewrite_ports(block, given), cwd)
     assert not failures, "\n\n".join(failures)
+    # The working directory stands for the reader's checkout (issue 34: the pages left
+    # move.csv, cap.txt, drive2.dcf, ... in it): what a block writes goes to /tmp/.
+    left = sorted(set(os.listdir(cwd)) - links)
+    assert not left, f"{block.id} leaves {left} in the checkout: write them to /tmp/"
+    left = sorted(git_status() - status)
+    assert not left, f"{block.id} leaves {left} in the checkout (through a link)"
+
+
+def git_status() -> set[str]:
+    """The checkout's untracked files, as ``git status`` lists them (none outside git).
+    Untracked only: a developer's edits while the block runs are not the block's."""
+    done = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"], cwd=ROOT,
+                          capture_output=True, text=True)
+    lines = done.stdout.splitlines() if done.returncode == 0 else []
+    return {line for line in lines if line.startswith("??")}
 
 
 # --- the convention itself -----------------------------------------------------------
@@ -157,6 +175,25 @@ def test_kill_with_a_job_spec_signals_that_background_command(tmp_path: Path) ->
     assert job_kill("kill -SIGINT %1   # stop it") == (signal.SIGINT, 1)
     assert job_kill("kill %1") == (signal.SIGTERM, 1)
     assert job_kill("kill -NOSUCH %1") is None and job_kill("kill 1234") is None
+
+
+def test_wait_for_a_job_and_tmp_is_the_tests_own(tmp_path: Path) -> None:
+    """``wait %N`` waits for the Nth ``&`` command and gives its status; ``/tmp/`` is a
+    scratch directory of the run's own, in commands and outputs alike."""
+    doc = tmp_path / "x.md"
+    doc.write_text("```console\n"
+                   "$ sleep 1; echo done > /tmp/out.txt; exit 3 &\n"
+                   "$ wait %1     # until it is done\n$ echo $?\n3\n"
+                   "$ cat /tmp/out.txt; echo /tmp/out.txt\ndone\n/tmp/out.txt\n"
+                   "$ wait %2\nbash: wait: %2: no such job\n```\n")
+    (block,) = parse(doc)
+    block.path = ROOT / "x.md"
+    scratch = tmp_path / "scratch"
+    (tmp_path / "cwd").mkdir()
+    assert run(block, {}, workdir(tmp_path / "cwd"), scratch) == []
+    assert (scratch / "out.txt").read_text() == "done\n"
+    assert localise("a /tmp/x b=/tmp/y ./tmp/z ~/tmp/w", {}, scratch) == \
+        f"a {scratch}/x b={scratch}/y ./tmp/z ~/tmp/w"
 
 
 def test_a_bridge_s_port_options_are_rewritten_like_addresses(tmp_path: Path) -> None:

@@ -3,9 +3,9 @@
 Issue 34, must show 1: the walkthrough's console block, exactly as the docs print it
 and as tests/test_docs_commands.py runs it once, run 10 times in a row, each on a
 fresh simulator (the block starts its own ``epos-link sim``), each in a fresh
-directory. Every run must pass as the block prints it (the trigger row, the last row
-at 20000 inc) and its move.csv must hold the move: positions that leave 0 after the
-trigger and reach the target. Before issue 34 the block passed about half the time:
+directory with its own /tmp/. Every run must pass as the block prints it (the trigger
+row, the last row at 20000 inc) and its move.csv must hold the move: positions that
+leave 0 after the trigger and reach the target. Before issue 34 the block passed about half the time:
 ``examples/pp_move.py`` closed with TPDOs unread, the close was a TCP reset, and its
 last frame (the new set-point) never reached the bus, so ``record`` waited for ever.
 """
@@ -46,8 +46,9 @@ def test_the_recording_walkthrough_records_the_move_10_times_in_a_row(tmp_path: 
     for run in range(RUNS):
         (tmp_path / f"run{run}").mkdir()
         cwd = doc_blocks.workdir(tmp_path / f"run{run}")
-        failures = doc_blocks.run(block, doc_blocks.rewrite_ports(block, {}), cwd)
-        table = cwd / "move.csv"
+        scratch = tmp_path / f"tmp{run}"  # the block's /tmp/
+        failures = doc_blocks.run(block, doc_blocks.rewrite_ports(block, {}), cwd, scratch)
+        table = scratch / "move.csv"
         moved = False
         if table.exists():
             rows = list(csv.DictReader(table.open()))
