@@ -73,6 +73,8 @@ class FakeSlave:
         self.ca_used = False
         self.complete_access = True  # the SII offers CA (pysoem: _disable_complete_access)
         self.sdo_delay = 0.0  # seconds every CoE transfer takes (a slave that answers late)
+        self.lose = 0  # the next this many CoE transfers get no answer (frames lost on the line)
+        self.transfers = 0  # CoE transfers tried
         self.ca_padding = True  # False: its CA answers leave out the padding byte (issue 31)
         self.recovered = 0
         self.resets = 0  # requests of INIT (the bridge's "NMT reset")
@@ -132,6 +134,10 @@ class FakeSlave:
             self.ca_used |= ca
             if self.sdo_delay:
                 time.sleep(self.sdo_delay)
+            self.transfers += 1
+            if self.lose:
+                self.lose -= 1
+                raise WkcError("lost", -2)
             if not self.present:
                 raise WkcError("no answer", 0)
             if (index, subindex) not in self.od:
@@ -148,6 +154,10 @@ class FakeSlave:
             self.ca_used |= ca
             if self.sdo_delay:
                 time.sleep(self.sdo_delay)
+            self.transfers += 1
+            if self.lose:
+                self.lose -= 1
+                raise WkcError("lost", -2)
             if not self.present:
                 raise WkcError("no answer", 0)
             if (index, subindex) == (0x1000, 0):

@@ -281,3 +281,22 @@ def test_check_finds_every_slave_by_position_with_its_identity_and_writes_nothin
     assert reports[2].reading.silent and "no slave at position 3" in reports[2].reading.silent
     master = soem.masters[0]
     assert master.closed and all(s.state != OP_STATE and not s.received for s in master.slaves)
+
+
+def test_a_coe_transfer_whose_frames_got_no_answer_is_made_once_more(
+        backend: EthercatBackend, soem: FakeSoem, caplog: pytest.LogCaptureFixture) -> None:
+    """A request frame lost or late on the line is not a silent slave (ethercat_node
+    _twice): one more try; a second loss in a row is the slave's silence, as before."""
+    caplog.set_level(logging.INFO, "tcp_bridge.backends.ethercat")
+    slave = soem.masters[0].slaves[0]
+    slave.lose = 1
+    before = slave.transfers
+    backend.node(1).sdo.download(0x6081, 0, (1000).to_bytes(4, "little"))
+    assert slave.transfers == before + 2 and slave.od[(0x6081, 0)] == (1000).to_bytes(4, "little")
+    assert "slave 1: a CoE transfer got no answer (working counter -2): made once more" \
+        in caplog.text
+    slave.lose = 1
+    assert backend.node(1).sdo.upload(0x1000, 0) == (0x00020192).to_bytes(4, "little")
+    slave.lose = 2
+    with pytest.raises(SlaveUnreachable, match="its mailbox did not answer"):
+        backend.node(1).sdo.upload(0x1000, 0)

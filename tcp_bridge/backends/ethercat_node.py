@@ -6,6 +6,7 @@ docstring); the lock and the cycle in :mod:`tcp_bridge.backends.ethercat_cycle`.
 """
 from __future__ import annotations
 
+import logging
 from typing import Any, Callable, Optional
 
 from canopen.nmt import NmtError
@@ -16,6 +17,7 @@ from ..errors import BusUnavailable
 from . import ethercat_pdo as pdo
 from .ethercat_cycle import INIT
 
+log = logging.getLogger("tcp_bridge.backends.ethercat")
 
 # The longest a transfer waits for another one to finish, beyond its own sdo_timeout
 # (a store of parameters, 1010h, takes seconds on an EPOS4).
@@ -107,7 +109,7 @@ class EthercatNode:
             raise SlaveUnreachable(f"slave {self.id}: the mailbox stayed busy with another "
                                    f"transfer for {MAILBOX_WAIT + self._bus.sdo_timeout:g} s")
         try:
-            return transfer()
+            return self._twice(transfer)
         except soem.SdoError as exc:
             raise SdoAbortedError(int(exc.abort_code)) from exc
         except soem.WkcError as exc:
@@ -120,6 +122,26 @@ class EthercatNode:
                                    f"{_desc(exc)}".rstrip()) from exc
         finally:
             cycle.mailbox.release()
+
+    def _twice(self, transfer: Callable[[], Any]) -> Any:
+        """A transfer whose frames got no answer (SOEM's working counter 0, or -2 when
+        only other frames came back within its wait) is made once more, unless the slave
+        is known lost. A frame lost or late on the line (a loaded host, noise) is not a
+        silent slave: SOEM repeats a lost *reply* itself (the mailbox repeat request,
+        ETG.1000.4 SM1 "repeat") but not a lost request. Our transfers are single object
+        writes and reads, so a second one does what the first would have; a slave that
+        answered the first after all has its stale reply dropped by SOEM before the
+        second (ecx_SDOread/ecx_SDOwrite empty the mailbox first). (Under load a suite
+        saw 'write 0x6083/0 failed: its mailbox did not answer (working counter -2)'.)"""
+        cycle = self._bus.cycle
+        try:
+            return transfer()
+        except self._bus.soem.WkcError as exc:
+            if self.id in cycle.lost or cycle.link_down:
+                raise
+            log.info("bus %s: slave %d: a CoE transfer got no answer (working counter %s): "
+                     "made once more", self._bus.name, self.id, getattr(exc, "wkc", "?"))
+        return transfer()
 
     # -- cyclic set-points (module docstring, "Cyclic set-points") ------------------------
 
