@@ -163,11 +163,19 @@ class RecordChannels:
 
     async def post(self, changes: Dict[str, Any]) -> None:
         """Write each changed field to its channel, in the order given; STAT/SEVR as the
-        record's alarm (published to every field's monitors)."""
+        record's alarm (published to every field's monitors).
+
+        Control limits, units and precision are in place before any value's monitor
+        goes out, as in an IOC, where ``get_control_double()`` reads HLM/LLM that the
+        record set before ``db_post_events``: ophyd's ``EpicsMotor`` answers an HLM or
+        LLM monitor with a fresh DBR_CTRL get of VAL, and got the old limit (for ever,
+        as nothing changes them again) when that get came between the two."""
         values = self.record.values
+        values.update(changes)
+        if _WATCHED & changes.keys() or {"EGU", "PREC"} & changes.keys():
+            await self._metadata(changes)
         alarm_change = {}
         for name, value in changes.items():
-            values[name] = value
             channel = self.by_field.get(name)
             if channel is None:
                 continue
@@ -180,8 +188,6 @@ class RecordChannels:
         if alarm_change:
             await self.alarm.write(status=alarm_change.get("STAT", self.alarm.status),
                                    severity=alarm_change.get("SEVR", self.alarm.severity))
-        if _WATCHED & changes.keys() or {"EGU", "PREC"} & changes.keys():
-            await self._metadata(changes)
 
     async def _metadata(self, changes: Dict[str, Any]) -> None:
         v = self.record.values
