@@ -76,3 +76,31 @@ def test_units_and_precision_are_in_place_before_egu_s_monitor() -> None:
     egu.write = spy
     asyncio.run(ch.post({"EGU": "deg", "PREC": 2}))
     assert seen == [("deg", "deg/sec", 2)]
+
+
+def test_a_put_s_completion_waits_for_events_still_in_the_context_s_queue() -> None:
+    """caproto's context queue holds a published event until its loop hands it to each
+    circuit; the completion must wait for that too (pyepics ``Motor.move`` read LVIO 0
+    for a refused move under load when only the circuits' queues were looked at)."""
+    ch = channels()
+
+    async def scenario() -> List[str]:
+        order: List[str] = []
+        circuit = SimpleNamespace(subscription_queue=asyncio.Queue())
+        ch.context = SimpleNamespace(subscription_queue=asyncio.Queue(), circuits=[circuit])
+        ch.context.subscription_queue.put_nowait("LVIO = 1")
+
+        async def context_loop() -> None:  # a loaded loop: the event waits a while
+            for _ in range(20):
+                await asyncio.sleep(0.001)
+            circuit.subscription_queue.put_nowait(ch.context.subscription_queue.get_nowait())
+            await asyncio.sleep(0.005)
+            order.append(circuit.subscription_queue.get_nowait())  # sent
+
+        task = asyncio.ensure_future(context_loop())
+        await ch.drain()
+        order.append("completion")
+        await task
+        return order
+
+    assert asyncio.run(scenario()) == ["LVIO = 1", "completion"]

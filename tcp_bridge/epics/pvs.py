@@ -33,7 +33,8 @@ from . import PutRefused
 from . import fields as F
 from .axis import AxisRecord
 
-DRAIN = 0.5  # s at most that a put's completion waits for its monitor events to go out
+DRAIN = 2.0  # s at most that a put's completion waits for its monitor events to be queued
+SEND_TURNS = 10  # loop turns for a circuit to send its batch once its window closed
 
 _CONTROL = {"VAL": ("HLM", "LLM"), "RBV": ("HLM", "LLM"), "DVAL": ("DHLM", "DLLM"),
             "DRBV": ("DHLM", "DLLM"), "VELO": ("VMAX", "VBAS")}
@@ -139,17 +140,32 @@ class RecordChannels:
 
     async def drain(self) -> None:
         """Let the monitor events a put caused go out before its completion does, as a
-        client reads them right after (pyepics ``Motor.move`` reads LVIO then): caproto
-        sends monitors from each circuit's queue, in batches closed after
-        ``HIGH_LOAD_TIMEOUT`` (10 ms) without a new event; bounded by :data:`DRAIN`."""
-        if self.context is None:
+        client reads them right after (pyepics ``Motor.move`` reads LVIO then).
+
+        caproto moves an event from the context's queue to each circuit's queue, and a
+        circuit sends what it took once ``HIGH_LOAD_TIMEOUT`` (10 ms) passed without a
+        new event. So: both queues empty (bounded by :data:`DRAIN`), then that window,
+        then a few turns of the loop for the circuit's timed-out get and its send. The
+        circuit's window began before ours (it took the last event before we saw its
+        queue empty), so its timer fires first; the turns are counted in loop turns, not
+        time, so a loaded machine cannot reorder them. The context's queue was not
+        looked at before: under load its events were still there when the completion
+        went out, and ``Motor.move`` returned 0 for a move refused with LVIO = 1."""
+        context = self.context
+        if context is None:
             return
         loop = asyncio.get_running_loop()
         deadline = loop.time() + DRAIN
-        while loop.time() < deadline and any(
-                not c.subscription_queue.empty() for c in list(self.context.circuits)):
+
+        def queued() -> bool:
+            return not context.subscription_queue.empty() or any(
+                not c.subscription_queue.empty() for c in list(context.circuits))
+
+        while loop.time() < deadline and queued():
             await asyncio.sleep(0.002)
         await asyncio.sleep(HIGH_LOAD_TIMEOUT + 0.002)
+        for _ in range(SEND_TURNS):
+            await asyncio.sleep(0)
 
     def recount(self) -> None:
         """Subscriptions to any field of the record, from caproto's own bookkeeping
