@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import functools
+import signal
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -48,10 +49,19 @@ LONG = (
     "tests/test_bridge_heartbeat_e2e.py::",
     "tests/test_bridge_config.py::test_any_document",
     "tests/test_record.py::test_record_a_move_at_5_ms",
+    "tests/test_docs_recording_walkthrough.py::",  # ten walkthroughs, ~50 s
 )
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # A suite started in the background of a shell without job control (`dev.py test &`
+    # in a script, nohup, some CI runners) inherits SIGINT ignored, and passes it on to
+    # every process a test spawns: Python then installs no KeyboardInterrupt handler,
+    # and the tests that press Ctrl-C on a command (scan, backup, can.logger, serve) saw
+    # it run on. A handler of our own is reset to the default at exec, so children get
+    # Ctrl-C as they would under a terminal.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     config.addinivalue_line("markers", "slow: keeps a wait at its real value (see tests/conftest.py)")
     config.addinivalue_line("markers", "xdist_group(name): run on one worker with the rest of its group")
 

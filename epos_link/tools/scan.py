@@ -121,8 +121,8 @@ def scan(client: EposClient, nodes: list[int], node_timeout: float, *, json_line
     found = tally.found
     client.late_answer_timeout = max(client.late_answer_timeout, node_timeout)
     for i, node in enumerate(nodes, 1):
+        tally.trying = node  # before the progress names it: a Ctrl-C then says so too
         progress.show(f"scanning node {node} ({i}/{len(nodes)}), {len(found)} found, {now() - start:.1f} s")
-        tally.trying = node
         infos = client.scan([node], timeout=node_timeout)
         tally.tried, tally.trying = i, None
         for info in infos:
