@@ -14,7 +14,11 @@ Needs root or CAP_NET_RAW; :func:`open_socket` raises ``PermissionError`` or
 receives one JSON object per line for what each drive did in every cycle
 (:class:`~.drive_app.EthercatDrive`, ``on_event``), flushed at once, so that a
 test in another process sees every cycle of a drive, not only what a master
-polls; each with ``t`` (the drives' clock) and ``wall`` (``time.time()``).
+polls; each with ``t`` (the drives' clock) and ``wall`` (``time.time()``), and an
+event that a frame caused with ``rx``: the system clock when the frame arrived, as the
+kernel stamped it (``SO_TIMESTAMP``), where this thread may have taken it much later on
+a loaded machine. A real ESC takes a frame's outputs as the frame passes, so ``rx`` is
+when the drive got them; set-points against ``rx`` show the stream as the master sent it.
 """
 from __future__ import annotations
 
@@ -22,9 +26,10 @@ import json
 import logging
 import select
 import socket
+import struct
 import threading
 import time
-from typing import IO, Any, Callable, Dict, Mapping, Optional
+from typing import IO, Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 from .drive_app import EthercatDrive
 from .frame import ETHERTYPE
@@ -35,6 +40,10 @@ __all__ = ["EthercatServer", "open_socket", "TICK"]
 
 TICK = 0.005
 _log = logging.getLogger(__name__)
+# Linux's SO_TIMESTAMP (= SCM_TIMESTAMP; asm-generic/socket.h, x86 and arm alike; the
+# socket module does not name it): each frame comes with a struct timeval of its arrival.
+SO_TIMESTAMP = 29
+_TIMEVAL = struct.Struct("@ll")
 
 
 def open_socket(interface: str) -> socket.socket:
@@ -44,7 +53,20 @@ def open_socket(interface: str) -> socket.socket:
     except OSError:
         sock.close()
         raise
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMP, 1)
+    except OSError:  # not Linux: events carry no "rx"
+        pass
     return sock
+
+
+def arrival(ancdata: List[Tuple[int, int, bytes]]) -> Optional[float]:
+    """The kernel's arrival stamp of a frame (system clock, s), or None without one."""
+    for level, kind, data in ancdata:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMP and len(data) >= _TIMEVAL.size:
+            sec, usec = _TIMEVAL.unpack_from(data)
+            return sec + usec / 1e6
+    return None
 
 
 class EthercatServer:
@@ -66,6 +88,7 @@ class EthercatServer:
         self.lock = threading.Lock()  # the segment: this thread against tests looking in
         self._sock: Optional[socket.socket] = open_socket(interface)
         self._stop = threading.Event()
+        self._rx: Optional[float] = None  # the arrival of the frame being handled
         self._thread = threading.Thread(target=self._run, name=f"ethercat-{interface}", daemon=True)
         self._thread.start()
 
@@ -79,7 +102,7 @@ class EthercatServer:
                     with self.lock:
                         self.segment.tick(self.clock())
                     continue
-                frame = sock.recv(4096)
+                frame, ancdata, _, _ = sock.recvmsg(4096, socket.CMSG_SPACE(_TIMEVAL.size))
             except OSError:
                 if self._stop.is_set():
                     return
@@ -87,7 +110,11 @@ class EthercatServer:
                 continue
             try:
                 with self.lock:
-                    reply = self.segment.handle(frame, self.clock())
+                    self._rx = arrival(ancdata)
+                    try:
+                        reply = self.segment.handle(frame, self.clock())
+                    finally:
+                        self._rx = None
             except Exception:  # a bug must not end the line: drop the frame, as a CRC error would
                 _log.exception("EtherCAT frame dropped")
                 continue
@@ -104,6 +131,9 @@ class EthercatServer:
             # a test can tell the frames a master sent before a line of its log from those
             # it sent after (issue 31: what a bridge did once it had an input).
             event = {**event, "wall": round(time.time(), 6)}
+            rx = self._rx
+            if rx is not None and threading.current_thread() is self._thread:
+                event["rx"] = round(rx, 6)
             events.write(json.dumps(event, separators=(",", ":")) + "\n")
             events.flush()
 
