@@ -69,6 +69,9 @@ def path(request: pytest.FixtureRequest, simulator: Epos4Simulator) -> Iterator[
         def make(node_id: int, p402: bool) -> canopen.RemoteNode:
             cls = BaseNode402 if p402 else canopen.RemoteNode
             node = cls(node_id or GATEWAY_ID, _od(node_id or GATEWAY_ID))
+            # canopen waits 0.3 s for an answer; a loaded machine (two CPU hogs beside the
+            # suite) once kept the simulated drive longer (issue 32: ten times the wait)
+            node.sdo.RESPONSE_TIMEOUT = 5.0
             net.add_node(node)
             return node
 
