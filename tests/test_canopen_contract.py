@@ -236,7 +236,7 @@ def test_typical_402_script(node402: BaseNode402) -> None:
     with setup_402_state_machine()'s defaults (PDO configuration read by SDO)."""
     n = node402
     n.nmt.state = "RESET"
-    n.nmt.wait_for_bootup(5)
+    n.nmt.wait_for_bootup(100 * BOOT_TIME)  # 5 s was once not enough with two CPU hogs
     n.load_configuration()
     n.setup_402_state_machine()
     assert n.nmt.state == "PRE-OPERATIONAL"

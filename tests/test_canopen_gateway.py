@@ -70,7 +70,7 @@ def test_broadcast_through_network_nmt(client: EposClient) -> None:
     node.network.nmt.state = "RESET"
     with pytest.raises(canopen_adapter.GatewayLimitationError, match="all nodes"):
         node.network.nmt.wait_for_bootup(1)
-    node.nmt.wait_for_bootup(1)  # each node's own wait works after a broadcast reset
+    node.nmt.wait_for_bootup(10)  # each node's own wait works after a broadcast reset
     assert node.nmt.state == "PRE-OPERATIONAL"
 
 
