@@ -104,11 +104,12 @@ def test_stopped_node_is_silent_on_can_too(sim: Epos4Simulator) -> None:
     net.connect(interface="virtual", channel=sim.channel, receive_own_messages=False)
     try:
         node = net.add_node(2, str(EDS_PATH))
-        node.sdo.RESPONSE_TIMEOUT = 0.1
+        node.sdo.RESPONSE_TIMEOUT = 5.0  # an answer: as long as a loaded machine needs
         node.sdo.MAX_RETRIES = 1  # canopen counts the first try
         assert node.sdo[0x1000].raw == 0x00020192
         node.nmt.send_command(0x02)
         eventually(lambda: sim.nmt_state(2) is NmtState.STOPPED, "node 2 stopped")
+        node.sdo.RESPONSE_TIMEOUT = 0.1  # silence: no answer ever comes, so no race
         with pytest.raises(SdoCommunicationError):
             node.sdo.upload(0x1000, 0)
     finally:
