@@ -64,6 +64,20 @@ log = logging.getLogger(__name__)
 SPEC_REVISION = "2.3"
 
 
+# The backends whose buses stream set-points to internal axes in CSP (their nodes' cyclic).
+STREAMING_BACKENDS = frozenset({"canopen", "ethercat"})
+
+
+def _streams_once_open(table: AxisTable, bus: str, unopened: Optional[Mapping[str, str]]) -> bool:
+    """A bus that could not be opened at start-up has no set-point thread yet; its CSP
+    axes get it when the probes open it (backends.reopen). Only a backend that streams
+    may wait for that: any other is still a table mistake at start-up. (A bridge started
+    while the EtherCAT slaves did not answer yet exited 2 with 'cannot stream'.)"""
+    config = table.buses.get(bus)
+    return (bus in (unopened or {}) and config is not None
+            and config.backend in STREAMING_BACKENDS)
+
+
 def software_version() -> str:
     """Command 99: the spec revision served and the package version, e.g. "2.3-py0.1.0"."""
     try:
@@ -120,7 +134,8 @@ class Engine:
                 port = SdoPort(node, name=f"axis {addr} ({axis.bus} node {axis.node_id})",
                                debug=self._debug, health=self.guards[axis.bus].node(axis.node_id))
             self.axes[addr] = AxisRuntime(axis, self.params, port, timing, **cia402_options)
-            if axis.cyclic is not None and port is not None and self.axes[addr].cyclic is None:
+            if axis.cyclic is not None and port is not None and self.axes[addr].cyclic is None \
+                    and not _streams_once_open(table, axis.bus, unopened):
                 raise ConfigError(f"{table.source}: [[axis]] AxAddr {addr}: an internal axis "
                                   f"is moved in CSP, but bus {axis.bus} cannot stream set-points "
                                   "(a canopen or ethercat bus, or sim with link = \"can\", can); "

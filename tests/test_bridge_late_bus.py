@@ -199,3 +199,58 @@ def test_late_nodes_raise_bus_unavailable_until_the_backend_opens() -> None:
     assert real[0].nmt.state == "RESET"
     backend.probe()
     assert len(attempts) == 3  # opened once
+
+
+def _csp_table(bus: dict) -> AxisTable:  # type: ignore[type-arg]
+    name = "ethercat" if bus["backend"] == "ethercat" else "can2"
+    offset = 1000000 if name == "ethercat" else 100000
+    return AxisTable.from_mapping({"bus": {name: bus}, "axis": [
+        {"node_id": 1, "internal": True, "device": 5, "increments_per_revolution": 2000,
+         "bus_offset": offset}]})
+
+
+def _pysoem_missing() -> bool:
+    try:
+        import pysoem  # noqa: F401
+    except ImportError:
+        return True
+    return False
+
+
+@pytest.mark.parametrize("bus", [
+    {"backend": "canopen", "interface": "socketcan", "channel": "nocan9", "heartbeat_ms": 200},
+    pytest.param({"backend": "ethercat", "interface": "nonexist0"},
+                 marks=pytest.mark.skipif(_pysoem_missing(), reason="pysoem: the [ethercat] extra")),
+], ids=["canopen", "ethercat"])
+def test_an_internal_csp_axis_on_a_bus_missing_at_start_up_gets_its_stream_once_open(
+        bus: dict) -> None:  # type: ignore[type-arg]
+    """A bridge started while the EtherCAT slaves did not answer yet (a loaded machine, a
+    line powered later) exited 2 with 'bus ethercat cannot stream set-points': the
+    stand-in nodes of a bus opened later have no set-point thread. Now the bus is silent
+    (NAK) until its probes open it, and the axis then streams through the real one."""
+    engine = build_engine(_csp_table(bus))
+    try:
+        name = "ethercat" if bus["backend"] == "ethercat" else "can2"
+        assert engine.guards[name].health.silent
+        axis = engine.axes[1]
+        assert axis.cyclic is None  # nothing to stream through yet ...
+        assert axis.drive is not None and axis.drive.rest is not None  # ... its rest is there
+        stand_in = next(b for b in engine.backends if isinstance(b, UnopenedBackend))
+        sender = object()
+        real = SimpleNamespace(node=lambda node_id: SimpleNamespace(
+            cyclic=sender, sdo=None, nmt=SimpleNamespace(add_heartbeat_callback=lambda cb: None)),
+            close=lambda: None)
+        stand_in._opener = lambda: real  # the device appeared
+        stand_in.probe()
+        assert axis.cyclic is sender
+    finally:
+        engine.close()
+
+
+def test_a_csp_axis_on_a_missing_bus_that_could_never_stream_is_still_a_table_mistake() -> None:
+    table = AxisTable.from_mapping({
+        "bus": {"can2": {"backend": "epos", "url": f"socket://127.0.0.1:{free_port()}"}},
+        "axis": [{"node_id": 1, "internal": True, "device": 5,
+                  "increments_per_revolution": 2000, "bus_offset": 100000}]})
+    with pytest.raises(Exception, match="cannot stream set-points"):
+        build_engine(table)

@@ -134,6 +134,12 @@ class LateNode:
     def sdo(self) -> Any:
         return self.real().sdo
 
+    @property
+    def cyclic(self) -> Any:
+        """The real node's set-point thread (internal axes in CSP), None until open."""
+        backend = self._owner.backend
+        return None if backend is None else getattr(backend.node(self.id), "cyclic", None)
+
     def real(self) -> Any:
         return self._owner.real_node(self.id)
 

@@ -79,10 +79,6 @@ class AxisRuntime:
             self.drive.coasting = self._coasting
             # canopen backend with heartbeat_ms: the drive's heartbeat consumer (issue 23).
             self.drive.supervision = getattr(port.node, "supervision", None)
-        # cyclic = "csp" (issue 26): the bus's set-point thread, which moves this axis.
-        self.cyclic: Optional[CyclicSender] = (
-            getattr(getattr(port, "node", None), "cyclic", None)
-            if config.cyclic is not None else None)
         nmt = getattr(getattr(port, "node", None), "nmt", None)
         if self.drive is not None and nmt is not None and hasattr(nmt, "add_heartbeat_callback"):
             drive = self.drive
@@ -123,6 +119,15 @@ class AxisRuntime:
         included), kept by the port that wrote it: what a drive that kept its RAM
         values still holds (motion rule 3)."""
         return self.port.written if self.port is not None else {}
+
+    @property
+    def cyclic(self) -> Optional[CyclicSender]:
+        """cyclic = "csp" (issue 26): the bus's set-point thread, which moves this axis.
+        Asked of the node each time: a bus that could not be opened at start-up has none
+        until its probes open it (tcp_bridge.backends.reopen.LateNode)."""
+        if self.config.cyclic is None:
+            return None
+        return getattr(getattr(self.port, "node", None), "cyclic", None)
 
     @property
     def health(self) -> Optional[NodeHealth]:

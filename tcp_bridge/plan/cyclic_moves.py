@@ -174,8 +174,8 @@ def install_rest(axis: AxisRuntime) -> None:
     """How a cyclic axis comes to rest before a disable, reset or mode change (motion
     rule 1): its line's stop ramp, then halt set and velocity 606Ch zero."""
     drive, port = axis.drive, axis.port
-    if axis.cyclic is None or drive is None or port is None:
-        return
+    if axis.config.cyclic is None or drive is None or port is None:
+        return  # (its sender may come later: a bus opened after start-up)
 
     def rest(deadline: Deadline) -> None:
         stop_cyclic(axis)
