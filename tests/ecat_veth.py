@@ -46,3 +46,10 @@ def veth_pair() -> Iterator[tuple[str, str]]:
         yield a, b
     finally:
         _ip("link", "del", a)  # deletes the peer too
+
+
+def bus_open(log_text: str) -> bool:
+    """A bridge's log shows its EtherCAT bus open: it was opened at start-up, or its
+    probes opened it later (a loaded machine: the slaves did not answer the first time;
+    tcp_bridge.backends.reopen logs "bus NAME: opened")."""
+    return "opened again in the background" not in log_text or ": opened" in log_text

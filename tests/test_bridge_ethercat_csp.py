@@ -32,7 +32,7 @@ import pytest
 from epos_link.cia402 import State
 from tcp_bridge.tables.axes import simulated_increments_per_revolution
 from tcp_bridge.wire import Status
-from tests.ecat_veth import unavailable_reason, veth_pair
+from tests.ecat_veth import bus_open, unavailable_reason, veth_pair
 from tests.drive_samples import DriveSampler, largest_change, velocities
 from tests.helpers import psi_ask, wait_until
 
@@ -98,6 +98,7 @@ def bridge(server: Tuple[object, str], tmp_path: Path) -> Iterator[Tuple[socket.
         wait_until(lambda: "listening on" in log.read_text() or proc.poll() is not None, 60,
                    "the bridge never listened")
         assert proc.poll() is None, log.read_text()
+        wait_until(lambda: bus_open(log.read_text()), 60, "the EtherCAT bus never opened")
         with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
             yield sock, proc
     finally:

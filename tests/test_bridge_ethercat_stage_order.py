@@ -22,7 +22,7 @@ from typing import Iterator, Tuple
 import pytest
 
 from tcp_bridge.wire import REPLY_SIZE, Reply, Status, decode_reply
-from tests.ecat_veth import unavailable_reason
+from tests.ecat_veth import bus_open, unavailable_reason
 from tests.helpers import psi_ask, wait_until
 from tests.test_bridge_ethercat_csp import (FACTOR, ROOT, Sampler, enable_and_aim, free_port,
                                             server, write_table)
@@ -57,6 +57,7 @@ def two_ports(server: Tuple[object, str], tmp_path: Path
         wait_until(lambda: "listening on" in log.read_text() or proc.poll() is not None, 60,
                    "the bridge never listened")
         assert proc.poll() is None, log.read_text()
+        wait_until(lambda: bus_open(log.read_text()), 60, "the EtherCAT bus never opened")
         with socket.create_connection(("127.0.0.1", port), timeout=30) as a, \
                 socket.create_connection(("127.0.0.1", maintenance), timeout=30) as b:
             yield a, b, proc
