@@ -47,7 +47,7 @@ import pytest
 
 from tcp_bridge.tables.axes import simulated_increments_per_revolution
 from tcp_bridge.wire import Status
-from tests.ecat_veth import unavailable_reason, veth_pair
+from tests.ecat_veth import bus_open, unavailable_reason, veth_pair
 from tests.helpers import psi_ask, wait_until
 
 WHY_NOT = unavailable_reason()
@@ -147,6 +147,9 @@ class Bridge:
         wait_until(lambda: "listening on" in log.read_text() or self.proc.poll() is not None, 120,
                    "the bridge never listened")
         assert self.proc.poll() is None, log.read_text()
+        # A loaded machine's bridge may find the slaves silent at start and open the bus
+        # on a later probe (413e348); its commands NAK until then.
+        wait_until(lambda: bus_open(log.read_text()), 60, "the EtherCAT bus never opened")
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=60)
         self.stale_frames = 0  # held_once_received
 

@@ -11,11 +11,12 @@ The scenarios are those of tests/test_bridge_safety.py and test_bridge_hazards.p
 on CAN: enable alone and a target alone never move the axis; R82 reads 1 only at
 the target; a stopped move stays stopped, the axis still enabled, whatever
 follows short of a move command; a disable during a move answers once the axis
-is at rest; a slave that stops answering is NAK, and answers again after.
+is at rest (a slave that stops answering: tests/test_bridge_ethercat_freeze.py).
 Skipped, with the reason, where the machine has no root, iproute2 or pysoem.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import signal
@@ -70,26 +71,24 @@ class Bridge:
         return float(self.ok(f"{AXIS}R14"))
 
 
-def loaded_host_bus(bus: BusConfig) -> BusConfig:
+def loaded_host_bus(bus: BusConfig, watchdog_ms: float) -> BusConfig:
     """The simulated bus with 5 s for a CoE transfer, as test_bridge_ethercat_recovery
     has: on a loaded host (issue 32) a write of 6081h (the set-up's S05) had no answer
     within the default 0.3 s (NAK "its mailbox did not answer (working counter 0)", now
-    in the assertion's text). The watchdog stays the default 100 ms: with 1 s, the
-    last test's slave, stopped for less than that, stayed in OP, and the master's
-    recovery of a slave it could not read (state NONE) did not bring it back."""
+    in the assertion's text)."""
     return dataclasses.replace(bus, options=MappingProxyType(
-        {**bus.options, "sdo_timeout": 5.0}))
+        {**bus.options, "sdo_timeout": 5.0, "watchdog_ms": watchdog_ms}))
 
 
-@pytest.fixture(scope="module")
-def bridge() -> Iterator[Bridge]:
+@contextlib.contextmanager
+def running_bridge(watchdog_ms: float) -> Iterator[Bridge]:
     from tcp_bridge.engine import build_engine
 
     with SimulatedEthercat(1) as sim:
         table = simulated_table(1, ethercat_interface=sim.interface, ethercat_slaves=1)
         table = dataclasses.replace(table, settings=Settings(**TIMING),
                                     buses=MappingProxyType({**table.buses, "ethercat": loaded_host_bus(
-                                        table.buses["ethercat"])}))
+                                        table.buses["ethercat"], watchdog_ms)}))
         engine = build_engine(table)
         b = Bridge(engine, sim)
         try:
@@ -98,6 +97,16 @@ def bridge() -> Iterator[Bridge]:
             yield b
         finally:
             engine.close()
+
+
+@pytest.fixture(scope="module")
+def bridge() -> Iterator[Bridge]:
+    """The slave's SM watchdog at 1 s: with the default 100 ms, a cycle that a loaded
+    machine (two CPU hogs beside the suite) started more than 100 ms late tripped it,
+    and the slave left OP mid-test (SAFEOP+ERROR, AL status 0x001B: issue 32, a CI run
+    of 2026-11-28). These tests are about the motion rules, not about the watchdog."""
+    with running_bridge(watchdog_ms=1000) as b:
+        yield b
 
 
 @pytest.fixture(autouse=True)
@@ -180,21 +189,3 @@ def test_disable_during_a_move_answers_once_the_axis_is_at_rest(bridge: Bridge) 
     rest = b.position()
     time.sleep(0.3)
     assert b.position() == rest and b.velocity() == 0
-
-
-def test_a_slave_that_stops_answering_is_nak_and_answers_again_after(bridge: Bridge) -> None:
-    """Last in the module: the slave's watchdog may fault it while it is frozen."""
-    b = bridge
-    assert b.sim.pid is not None
-    os.kill(b.sim.pid, signal.SIGSTOP)  # the slave stops answering frames: gone from the bus
-    try:
-        wait_until(lambda: b.ask(f"{AXIS}R10")[0] is Status.NAK, timeout=60,
-                   why="a silent slave still answered ACK")
-        assert b.ask(f"{AXIS}S04=1")[0] is Status.NAK
-        assert b.ask(f"{AXIS}S00=3")[0] is Status.NAK
-    finally:
-        os.kill(b.sim.pid, signal.SIGCONT)
-    wait_until(lambda: b.ask(f"{AXIS}R10")[0] is Status.ACK, timeout=60,
-               why="the slave never answered again")
-    time.sleep(0.3)
-    assert b.velocity() == 0, "the slave came back moving"
