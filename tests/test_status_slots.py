@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from tcp_bridge.status.slots import Phase, RateLimit, Slot, Slots
+from tcp_bridge.status.slots import HEAD_GRACE, Phase, RateLimit, Slot, Slots
 
 
 def test_a_newcomer_takes_the_slot_of_the_oldest_unfinished_head() -> None:
@@ -57,3 +57,18 @@ def test_the_rate_limit_lets_a_burst_through_then_spaces_requests() -> None:
 def test_a_rate_limit_needs_a_rate_and_a_burst(rate: float, burst: int) -> None:
     with pytest.raises(ValueError):
         RateLimit(rate, burst)
+
+
+def test_a_head_younger_than_the_grace_is_not_taken() -> None:
+    """A head that has arrived but not been read yet (a loaded page, bench/status_page.py)
+    keeps its slot; once it has been coming for HEAD_GRACE it may be taken."""
+    slots = Slots()
+    young = Slot("young", 10.0)
+    assert slots.admit(young, 1) == (True, None)
+    assert slots.stale_heads(10.1) == [] and slots.next_stale(10.1) == pytest.approx(HEAD_GRACE - 0.1)
+    assert slots.admit(Slot("new", 10.0 + HEAD_GRACE / 2), 1) == (False, None)
+    assert not young.evicted
+    assert slots.admit(Slot("later", 10.0 + HEAD_GRACE), 1) == (True, young)
+    assert young.evicted
+    young.enter(Phase.ANSWER, 11.0)
+    assert Slots().next_stale(0.0) is None

@@ -116,6 +116,7 @@ class StatusServer:
         self.limit = RateLimit()
         self._encoded: Dict[str, Tuple[Any, bytes]] = {}  # route -> (body, its JSON)
         self.refused = 0  # connections refused for want of a slot
+        self._pending = 0  # accepted, not yet in a slot (see _accept)
         self._refusal_logged = float("-inf")
         self._closing = False
 
@@ -137,14 +138,24 @@ class StatusServer:
 
     async def _accept(self, listener: socket.socket) -> None:
         """Accept a connection only when it can have a slot (a free one, or one whose
-        head is still coming): with every slot busy answering, the next ones wait in
+        head has been coming for HEAD_GRACE): with every slot busy answering, the next ones wait in
         the kernel's listen backlog and cost the event loop, which the PSI ports
         share, nothing at all."""
         loop = asyncio.get_running_loop()
         while not self._closing:
-            if len(self._slots) >= MAX_CONNECTIONS and not self._slots.in_phase(Phase.HEAD):
+            # Accepted and not yet given a slot: each will take a stale head's (or a free)
+            # slot, so no more are accepted than there are (a newcomer refused for a head
+            # that was stale when it was accepted but taken since would be reset).
+            room = MAX_CONNECTIONS - len(self._slots)
+            if self._pending >= max(room, len(self._slots.stale_heads(loop.time()))):
                 self._room.clear()
-                await self._room.wait()
+                # A slot frees (a connection ends), or a head in progress has taken
+                # HEAD_GRACE and may be given to the next one (.slots).
+                stale = self._slots.next_stale(loop.time())
+                try:
+                    await asyncio.wait_for(self._room.wait(), stale)
+                except asyncio.TimeoutError:
+                    pass
                 continue
             try:
                 conn, _ = await loop.sock_accept(listener)
@@ -152,6 +163,7 @@ class StatusServer:
                 log.warning("status page: accept failed: %s", exc)
                 await asyncio.sleep(0.1)
                 continue
+            self._pending += 1
             task = asyncio.ensure_future(self._connection(conn))
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
@@ -162,6 +174,9 @@ class StatusServer:
         except OSError:
             conn.close()
             return
+        finally:
+            self._pending -= 1  # from here on it has a slot, or is refused or gone
+            self._room.set()
         await self._serve(reader, writer)
 
     @property
@@ -195,7 +210,7 @@ class StatusServer:
         loop = asyncio.get_running_loop()
         slot = Slot((task, writer), loop.time())
         admitted, victim = self._slots.admit(slot, MAX_CONNECTIONS)
-        if not admitted:  # a head finished since the acceptor looked
+        if not admitted:  # a head finished since the acceptor looked, or is too young
             self.refused += 1
             if loop.time() - self._refusal_logged >= 1.0:  # a flood is one line a second
                 self._refusal_logged = loop.time()
