@@ -98,3 +98,79 @@ def test_a_damaged_late_answer_ends_the_wait() -> None:
     t0 = time.monotonic()
     assert struct.unpack("<I", client.read_object(0, 0x1000, 0))[0] == 0x00020192
     assert time.monotonic() - t0 < 4.0  # did not sit out the 5 s late-answer wait
+
+
+class LateScript:
+    """A transport whose answers are scripted per request written: ``answers[n]`` are
+    the frames that arrive once request ``n`` (1-based) is written, in order."""
+
+    def __init__(self, answers: "dict[int, list[bytes]]") -> None:
+        self.answers = answers
+        self.reads: list[bytes] = []
+        self.writes = 0
+
+    def write(self, data: bytes) -> None:
+        self.writes += 1
+        self.reads.extend(self.answers.get(self.writes, []))
+
+    def read(self, max_bytes: int, timeout: float) -> bytes:
+        import time
+
+        if self.reads:
+            return self.reads.pop(0)
+        time.sleep(min(timeout, 0.01))
+        return b""
+
+    def reset_input(self) -> None:
+        pass  # what arrives after the write is what matters here
+
+    def close(self) -> None:
+        pass
+
+
+def _answer(payload_hex: str) -> bytes:
+    from tests.reference import reference_frame
+
+    return reference_frame(0x00, bytes.fromhex(payload_hex))
+
+
+def test_an_answer_later_than_the_late_answer_wait_is_not_taken_for_the_next_one() -> None:
+    """Seen with two CPU hogs (issue 32): a read timed out in silence, its answer came
+    after the late-answer wait, and the next request (an NMT command through the
+    gateway, canopen's RESET COMMUNICATION) got it: "StatusAnswer: 8 data bytes,
+    expected 4". Had the next request been a read of the same size, its value would
+    have been the earlier object's. The device answers every request, in order (guide
+    2.2.1), so the first answer after a request that still owes one is the owed one."""
+    from epos_link.transports.base import Transport
+
+    device_type, serial = "00000000 92010200", "00000000 55550000"
+
+    class Script(LateScript, Transport):
+        pass
+    # Request 1 (1000h) gets no answer in time; its answer arrives with request 2's.
+    link = Script({2: [_answer(device_type), _answer(serial)],
+                   3: [_answer("00000000")],  # NMT: a status answer (4 bytes)
+                   4: [_answer(device_type)]})
+    client = EposClient(link, retries=0, timeout=0.05, late_answer_timeout=0.05)
+    with pytest.raises(EposTimeoutError):
+        client.read_object(0, 0x1000, 0)
+    assert struct.unpack("<I", client.read_object(0, 0x1018, 4))[0] == 0x5555
+    client.nmt(2, 0x82)  # in step: its own 4-byte answer
+    assert struct.unpack("<I", client.read_object(0, 0x1000, 0))[0] == 0x00020192
+
+
+def test_an_owed_answer_that_never_comes_costs_one_attempt_not_the_link() -> None:
+    """The device may never have got the request (a frame lost on the wire): the
+    first answer after it is then the next request's own, dropped as the owed one;
+    that request times out having heard an answer, and the link is in step again."""
+    from epos_link.transports.base import Transport
+
+    class Script(LateScript, Transport):
+        pass
+    link = Script({2: [_answer("00000000 55550000")], 3: [_answer("00000000 55550000")]})
+    client = EposClient(link, retries=0, timeout=0.05, late_answer_timeout=0.05)
+    with pytest.raises(EposTimeoutError):
+        client.read_object(0, 0x1000, 0)  # lost: never answered
+    with pytest.raises(EposTimeoutError):
+        client.read_object(0, 0x1018, 4)  # its answer is taken for the owed one
+    assert struct.unpack("<I", client.read_object(0, 0x1018, 4))[0] == 0x5555
