@@ -68,6 +68,7 @@ def test_a_head_younger_than_the_grace_is_not_taken() -> None:
     assert slots.stale_heads(10.1) == [] and slots.next_stale(10.1) == pytest.approx(HEAD_GRACE - 0.1)
     assert slots.admit(Slot("new", 10.0 + HEAD_GRACE / 2), 1) == (False, None)
     assert not young.evicted
+    assert slots.next_stale(10.0 + HEAD_GRACE) is None  # stale now: nothing to wait for
     assert slots.admit(Slot("later", 10.0 + HEAD_GRACE), 1) == (True, young)
     assert young.evicted
     young.enter(Phase.ANSWER, 11.0)

@@ -138,9 +138,9 @@ class StatusServer:
 
     async def _accept(self, listener: socket.socket) -> None:
         """Accept a connection only when it can have a slot (a free one, or one whose
-        head has been coming for HEAD_GRACE): with every slot busy answering, the next ones wait in
-        the kernel's listen backlog and cost the event loop, which the PSI ports
-        share, nothing at all."""
+        head has been coming for HEAD_GRACE): with every slot busy answering, the
+        next ones wait in the kernel's listen backlog and cost the event loop, which
+        the PSI ports share, nothing at all."""
         loop = asyncio.get_running_loop()
         while not self._closing:
             # Accepted and not yet given a slot: each will take a stale head's (or a free)
@@ -149,8 +149,9 @@ class StatusServer:
             room = MAX_CONNECTIONS - len(self._slots)
             if self._pending >= max(room, len(self._slots.stale_heads(loop.time()))):
                 self._room.clear()
-                # A slot frees (a connection ends), or a head in progress has taken
-                # HEAD_GRACE and may be given to the next one (.slots).
+                # A slot frees (a connection ends or an accepted one takes its slot),
+                # or one more head has taken HEAD_GRACE and may be given to the next
+                # one (.slots).
                 stale = self._slots.next_stale(loop.time())
                 try:
                     await asyncio.wait_for(self._room.wait(), stale)

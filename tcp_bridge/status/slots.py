@@ -84,12 +84,10 @@ class Slots:
         return [s for s in self.in_phase(Phase.HEAD) if now - s.since >= grace]
 
     def next_stale(self, now: float, grace: float = HEAD_GRACE) -> Optional[float]:
-        """Seconds from ``now`` until a connection now in ``HEAD`` has been there for
-        ``grace``; None if none is in ``HEAD``."""
-        heads = self.in_phase(Phase.HEAD)
-        if not heads:
-            return None
-        return max(0.0, min(s.since for s in heads) + grace - now)
+        """Seconds from ``now`` until one more connection in ``HEAD`` has been there for
+        ``grace`` (always > 0); None if every one in ``HEAD`` has been already."""
+        young = [s.since for s in self.in_phase(Phase.HEAD) if now - s.since < grace]
+        return min(young) + grace - now if young else None
 
     def admit(self, slot: Slot, connections: int,
               grace: float = HEAD_GRACE) -> "tuple[bool, Optional[Slot]]":
