@@ -33,16 +33,6 @@ timeout with garbage received means the answer came and was damaged, so there
 is nothing to wait for; its :class:`EposTimeoutError` says so (``heard``), so a
 caller can tell a damaged answer from silence. (What that costs a node scan:
 see :mod:`epos_link.client`.)
-
-An answer later than that wait is still owed: the device answers every request,
-one at a time and in order (guide 2.2.1), so the first answer after the next
-request is written is the owed one, and is dropped too. (With two CPU hogs a read's
-answer came after the wait and was taken for the next request's: an NMT command
-got "8 data bytes, expected 4"; a read of the same size would have returned the
-earlier object's value.) If the device never got the timed-out request, the next
-request's own answer is the one dropped: that request times out having heard an
-answer, and the link is in step again, one attempt later. An owed answer is
-forgotten :data:`OWED_HORIZON` late-answer waits after its request timed out.
 """
 from __future__ import annotations
 
@@ -76,7 +66,6 @@ L = TypeVar("L", bound="Link")
 
 DEFAULT_TIMEOUT = 0.5  # guide 2.2.7: RS232/USB frame timeout, 500 ms by default
 DEFAULT_RETRIES = 1
-OWED_HORIZON = 10  # late-answer waits after which an owed answer is no longer expected
 READ_CHUNK = 4096  # one read takes whatever has arrived, up to a few frames
 # The shortest answer frame: DLE STX, op code, length, the 4-byte error code that
 # every answer starts with, CRC (guide 2.2.2 frame, 2.1 answers).
@@ -127,8 +116,7 @@ class Link:
         self._lock = threading.Lock()
         self._decoder = FrameDecoder()
         self._needs_reopen = False
-        self._owed = 0  # answers owed to requests that timed out in silence
-        self._owed_at = 0.0  # when the last of them timed out
+        self._late_answer_due = False
         self.late_answer_timeout = late_answer_timeout
         self.stats = ClientStats()
         # Called (on the calling thread) each time the client starts to wait on the
@@ -157,7 +145,7 @@ class Link:
         ``what`` names the request in a timeout message."""
         transport, decoder = self.transport, self._decoder
         on_wait = self.on_wait
-        if self._owed_now():
+        if self._late_answer_due:
             if on_wait is not None:
                 on_wait()
             self._swallow_late_answer()
@@ -186,9 +174,7 @@ class Link:
                     held = decoder.pending
                     # Silence, not garbage: the device may still answer (a gateway
                     # waiting for an absent node's SDO takes its own time).
-                    if not heard:
-                        self._owed += 1
-                        self._owed_at = time.monotonic()
+                    self._late_answer_due = not heard
                     raise EposTimeoutError(
                         f"{what or 'request'}: no answer within {timeout:g} s"
                         + (f" ({held} bytes of an incomplete answer)" if held else ""),
@@ -202,53 +188,30 @@ class Link:
             if got.opcode != OpCode.ANSWER:
                 raise MessageFormatError(
                     f"op code 0x{got.opcode:02X} where an answer (0x00) was expected", got.data)
-            if self._owed:
-                # It answers an earlier request that timed out: ours comes after it.
-                # (Should ours not come, this request timed out having heard an answer,
-                # and owes none: were it the device's answer to ours, and the earlier
-                # request never got there, counting one more would never end.)
-                self._owed -= 1
-                _log.debug("dropped a late answer (%d data bytes) that came after %s",
-                           len(got.data), what or "the next request")
-                continue
             return answer_type.from_payload(got.data)
 
-    def _owed_now(self) -> int:
-        """Answers still owed, forgetting those owed for longer than the horizon."""
-        if self._owed and (time.monotonic() - self._owed_at
-                           > OWED_HORIZON * self.late_answer_timeout):
-            _log.debug("%d late answer(s) never came", self._owed)
-            self._owed = 0
-        return self._owed
-
     def _swallow_late_answer(self) -> None:
-        """Wait (at most ``late_answer_timeout``) for the answers owed to requests that
-        timed out in silence, and drop them.
+        """Wait (at most ``late_answer_timeout``) for the answer to a request that
+        timed out in silence, and drop it.
 
         The device answers every request (guide 2.2.1) and answers carry no
         request id, so a late answer would otherwise be taken for the next
         request's: after a silent timeout the link is out of step until it comes.
-        What has not come by the end of the wait stays owed (see the module's doc).
         """
+        self._late_answer_due = False
         decoder = self._decoder
         deadline = time.monotonic() + self.late_answer_timeout
-        while self._owed:
+        while True:
             try:
                 if decoder.next_frame() is not NEED_DATA:
                     _log.debug("dropped a late answer")
-                    self._owed -= 1
-                    continue
+                    return
             except (CrcError, TruncatedFrameError, MessageFormatError):
-                self._owed -= 1  # the late answer came, damaged
-                continue
+                return  # the late answer came, damaged: the link is in step again
             except RemoteProtocolError:
                 continue
             left = deadline - time.monotonic()
             if left <= 0:
-                if decoder.pending:
-                    # Part of it came: the rest, after the input is reset for the next
-                    # request, is junk the decoder skips, never a frame to drop.
-                    self._owed -= 1
                 return
             data = self.transport.read(READ_CHUNK, left)
             if data:
@@ -294,4 +257,4 @@ class Link:
         _log.info("reopened %s", self.transport.url)
 
 
-__all__ = ["DEFAULT_RETRIES", "DEFAULT_TIMEOUT", "OWED_HORIZON", "WAKE_EARLY", "ClientStats", "Link"]
+__all__ = ["DEFAULT_RETRIES", "DEFAULT_TIMEOUT", "WAKE_EARLY", "ClientStats", "Link"]
