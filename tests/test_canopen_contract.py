@@ -83,7 +83,12 @@ def path(request: pytest.FixtureRequest, simulator: Epos4Simulator) -> Iterator[
         if not url:
             link = PtyLink(simulator).start()
             url = link.path
-        client = canopen_adapter.EposClient.open(url, timeout=1.0)
+        # A read that times out leaves the link out of step until its late answer
+        # comes, and the client drops it only within late_answer_timeout (default
+        # 0.5 s). With two CPU hogs a Device type read's answer came after 1 s and
+        # another 0.5 s, and canopen's next NMT command got it ("StatusAnswer: 8 data
+        # bytes, expected 4"): the simulator answers every request, so wait for it.
+        client = canopen_adapter.EposClient.open(url, timeout=1.0, late_answer_timeout=5.0)
 
         def make(node_id: int, p402: bool) -> canopen.RemoteNode:
             return canopen_adapter.connect_node(client, node_id, profile="402" if p402 else None)
