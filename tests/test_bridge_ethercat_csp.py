@@ -74,7 +74,10 @@ def write_table(tmp: Path, interface: str) -> Path:
     table.write_text(
         "[bridge]\nack_timeout = 2.0\nstate_timeout = 1.0\nreset_timeout = 3.0\n\n"
         f"[bus.ethercat]\nbackend = \"ethercat\"\ninterface = \"{interface}\"\ncycle_ms = 4\n"
-        f"watchdog_ms = 100\n\n{axes}")
+        # 5 s for a CoE transfer, as the safety and recovery tests have: with two CPU
+        # hogs the set-up's reads had no answer within the default 0.3 s ("slave 2: PDO
+        # mapping unreadable", "slave 1: watchdog not set"), and 2S04=1 was NAK.
+        f"watchdog_ms = 100\nsdo_timeout = 5.0\n\n{axes}")
     return table
 
 

@@ -81,7 +81,9 @@ def simulated(veth: Tuple[str, str], tmp_path_factory: pytest.TempPathFactory
     table = tmp_path_factory.mktemp("ecat") / "axes.toml"
     table.write_text(
         "[bus.ethercat]\nbackend = \"ethercat\"\n"
-        f"interface = \"{veth[0]}\"\ncycle_ms = 4\n\n"
+        # 5 s for a CoE transfer on a loaded machine (test_bridge_ethercat_csp: the
+        # default 0.3 s left a slave's PDO mapping unread at set-up).
+        f"interface = \"{veth[0]}\"\ncycle_ms = 4\nsdo_timeout = 5.0\n\n"
         "[[axis]]\naddr = 1\ndevice = 5\nbus_offset = 1000000\nnode_id = 1\n"
         f"position_factor = 1000\nincrements_per_revolution = "
         f"{simulated_increments_per_revolution()}\n")
