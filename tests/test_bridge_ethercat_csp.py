@@ -63,7 +63,16 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Tuple[object, s
         pair.__exit__(None, None, None)
 
 
-def write_table(tmp: Path, interface: str) -> Path:
+# The slaves' SM watchdog in these tables: 1 s, as the motion-rule tests have
+# (test_bridge_ethercat_safety.py). With 100 ms a loaded machine (two CPU hogs beside
+# the suite) started a cycle 96 ms late, the watchdog tripped, both drives quick-stopped
+# and 1S90=1 was NAK ("left the move as it started"): the bridge was right, the test's
+# watchdog too tight. What the watchdog does is tested where it is the subject
+# (test_bridge_ethercat_recovery.py, test_bridge_ethercat_freeze.py, test_ecat_csp.py).
+WATCHDOG_MS = 1000
+
+
+def write_table(tmp: Path, interface: str, watchdog_ms: int = WATCHDOG_MS) -> Path:
     axes = "".join(
         f"[[axis]]\naddr = {n}\ndevice = 5\nbus_offset = 1000000\nnode_id = {n}\n"
         f"internal = true\ncyclic = \"csp\"\nposition_factor = {FACTOR}\n"
@@ -77,7 +86,7 @@ def write_table(tmp: Path, interface: str) -> Path:
         # 5 s for a CoE transfer, as the safety and recovery tests have: with two CPU
         # hogs the set-up's reads had no answer within the default 0.3 s ("slave 2: PDO
         # mapping unreadable", "slave 1: watchdog not set"), and 2S04=1 was NAK.
-        f"watchdog_ms = 100\nsdo_timeout = 5.0\n\n{axes}")
+        f"watchdog_ms = {watchdog_ms}\nsdo_timeout = 5.0\n\n{axes}")
     return table
 
 

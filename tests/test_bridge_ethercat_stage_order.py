@@ -37,7 +37,8 @@ GAP = 0.004  # seconds between the line and the stop, as seen (3-5 ms)
 # To be sure it does, as on a busy bridge, the bridge process is held (SIGSTOP)
 # while the two requests are sent, and let go (SIGCONT) 50 ms later: it then reads
 # the line first (it came first), the stop right after. The slaves' SM watchdog
-# (100 ms) does not trip meanwhile: held for 50 ms, the process data pause for less.
+# (WATCHDOG_MS, 1 s) does not trip meanwhile: held for 50 ms, the process data pause
+# for less.
 HOLD = 0.05
 
 
