@@ -82,8 +82,11 @@ def simulated(veth: Tuple[str, str], tmp_path_factory: pytest.TempPathFactory
     table.write_text(
         "[bus.ethercat]\nbackend = \"ethercat\"\n"
         # 5 s for a CoE transfer on a loaded machine (test_bridge_ethercat_csp: the
-        # default 0.3 s left a slave's PDO mapping unread at set-up).
-        f"interface = \"{veth[0]}\"\ncycle_ms = 4\nsdo_timeout = 5.0\n\n"
+        # default 0.3 s left a slave's PDO mapping unread at set-up), and a 1 s SM
+        # watchdog: the move test's cycle runs in this pytest process, and a cycle
+        # started 100 ms late on a loaded machine would trip the default (100 ms) and
+        # quick-stop the drive mid-test (test_bridge_ethercat_csp.WATCHDOG_MS).
+        f"interface = \"{veth[0]}\"\ncycle_ms = 4\nsdo_timeout = 5.0\nwatchdog_ms = 1000\n\n"
         "[[axis]]\naddr = 1\ndevice = 5\nbus_offset = 1000000\nnode_id = 1\n"
         f"position_factor = 1000\nincrements_per_revolution = "
         f"{simulated_increments_per_revolution()}\n")
