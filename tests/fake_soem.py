@@ -78,6 +78,7 @@ class FakeSlave:
         self.ca_padding = True  # False: its CA answers leave out the padding byte (issue 31)
         self.recovered = 0
         self.resets = 0  # requests of INIT (the bridge's "NMT reset")
+        self.acks = 0  # error indications acknowledged (AL Control with the Ack bit)
         self.od: Dict[Tuple[int, int], bytes] = {
             (0x1000, 0): (0x00020192).to_bytes(4, "little"), (0x1008, 0): b"EPOS4",
             (0x1018, 1): self.man.to_bytes(4, "little"), (0x1018, 2): self.id.to_bytes(4, "little"),
@@ -171,14 +172,21 @@ class FakeSlave:
         with self._master.inside():
             if self.present and self.state == INIT_STATE:
                 self.resets += 1
-            elif self.present and self.state in (OP_STATE, SAFEOP_STATE | STATE_ACK):
-                self.state, self.al_status = (OP_STATE if self.state == OP_STATE else SAFEOP_STATE), 0
+            elif self.present and self.state == OP_STATE:
+                self.al_status = 0
+            elif self.present and self.state & STATE_ACK:  # the error acknowledged
+                self.state, self.al_status = self.state & 0x0F, 0
+                self.acks += 1
             return 1
 
     def reconfig(self, timeout: int) -> int:
+        """As SOEM's ecx_reconfig_slave on a strict slave: INIT, then PREOP and SAFEOP;
+        with its error indication set (not acknowledged) the slave goes down to INIT
+        but refuses every higher state (ETG.1000.6 6.4.1; the simulated ESC and the
+        slave stack code do the same), and the state read back is returned."""
         with self._master.inside():
             if self.present:
-                self.state = SAFEOP_STATE
+                self.state = INIT_STATE | STATE_ERROR if self.state & STATE_ERROR else SAFEOP_STATE
             return self.state
 
     def recover(self, timeout: int) -> int:
@@ -192,6 +200,11 @@ class FakeSlave:
     def drop_out(self) -> None:
         """The slave's watchdog tripped, as on a cable pulled and plugged again."""
         self.state, self.al_status = SAFEOP_STATE | STATE_ERROR, 0x001B
+
+    def drop_to_init(self) -> None:
+        """The slave is back in INIT with its error flag (a restart that failed, or a
+        master that took it down without acknowledging its error)."""
+        self.state, self.al_status = INIT_STATE | STATE_ERROR, 0x0011
 
 
 class DriveSlave(FakeSlave):

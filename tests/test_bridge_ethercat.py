@@ -200,6 +200,22 @@ def test_a_tripped_watchdog_names_the_al_status_code(backend: EthercatBackend,
     assert seen and "SAFEOP+ERROR, AL status 0x001B Sync manager watchdog" in seen[0]
 
 
+def test_a_slave_back_in_init_with_its_error_flag_is_acknowledged_and_back_in_op(
+        backend: EthercatBackend, soem: FakeSoem) -> None:
+    """A slave refuses every higher state until its error is acknowledged (ETG.1000.6
+    6.4.1): INIT+ERROR is acknowledged in INIT, then reconfigured and taken to OP. The
+    old rule acknowledged SAFEOP+ERROR only and reconfigured this slave for ever (INIT
+    went through, PREOP was refused): a frozen slave seen on the veth pair."""
+    master = soem.masters[0]
+    slave = master.slaves[0]
+    with backend.cycle.lock:  # between two cycles, as a slave does on its own
+        slave.drop_to_init()
+        backend.cycle._check = True
+    wait_until(lambda: 1 not in backend.cycle.lost and slave.state == OP_STATE,
+               why="the slave never came back to OP")
+    assert slave.acks == 1
+
+
 def test_no_frame_back_is_a_silent_link(backend: EthercatBackend, soem: FakeSoem) -> None:
     soem.masters[0].link = False
     wait_until(lambda: backend.cycle.link_down)

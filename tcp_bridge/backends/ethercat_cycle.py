@@ -37,7 +37,12 @@ Rules:
    (a silent node, as on CAN, :mod:`tcp_bridge.bus.health`), and ``on_lost``
    tells the backend (its outputs follow the drive from then on, its cyclic
    run ends). The recovery, on the cycle thread between cycles, one step per
-   check: SAFEOP+ERROR is acknowledged; a slave in SAFEOP is asked for OP only
+   check: a state with the error flag (SAFEOP+ERROR, and PREOP+ERROR or
+   INIT+ERROR too) is acknowledged first, in the state it shows, since a slave
+   refuses every higher state until its error indication is acknowledged
+   (ETG.1000.6 6.4.1, AL Control's Acknowledge bit; SOEM's ``simple_test`` acks
+   SAFEOP+ERROR only, and a slave back in INIT+ERROR was ``reconfig()``-ured for
+   ever: INIT went through, PREOP was refused); a slave in SAFEOP is asked for OP only
    at the second check in a row that finds it there, so that the inputs of
    the cycle just before came from the slave in SAFE-OP (the EPOS4 sends
    actual values in SAFE-OP: guide Table 4-17) and the outputs that follow its
@@ -85,6 +90,7 @@ summary_log = logging.getLogger("tcp_bridge.summary")
 # and its tests do not need pysoem itself.
 NONE, INIT, PREOP, BOOT, SAFEOP, OP = 0x00, 0x01, 0x02, 0x03, 0x04, 0x08
 ERROR = ACK = 0x10
+STATE_MASK = 0x0F  # the AL status's state, without the error flag
 STATE_NAMES = {NONE: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP",
                OP: "OP"}
 RECOVER_TIMEOUT_US = 2000  # SOEM EC_TIMEOUTRET: one exchange's wait
@@ -328,8 +334,10 @@ class CycleLoop:
     def _recover(self, position: int, slave: Any, state: int) -> None:
         if state != SAFEOP:
             self._armed.pop(position, None)
-        if state == SAFEOP | ERROR:
-            slave.state = SAFEOP | ACK
+        shown = state & STATE_MASK
+        if state & ERROR and shown != NONE and shown in STATE_NAMES:  # acknowledged first,
+            # in the state it shows (rule 3); a garbled read (no such state) is not echoed
+            slave.state = shown | ACK
             slave.write_state()
         elif state == SAFEOP:
             # Rule 3: OP only at the second check in a row in SAFEOP, so that the inputs
