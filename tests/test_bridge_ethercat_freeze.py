@@ -8,7 +8,9 @@ back to OP (ethercat_cycle rule 3). The motion rules of tests/test_bridge_etherc
 run with a 1 s watchdog, which a loaded machine does not trip; this test was the last of
 that module, and has its own module because two simulated segments of one process share
 the veth pair's name. (With a 1 s watchdog, a slave frozen for longer than that came back
-through INIT+ERROR and was not brought back to OP: left open, in the note of issue 32.)
+through INIT+ERROR, which the master now acknowledges (ethercat_cycle rule 3), but then
+stays in SAFE-OP: its process-data frames come back with a working counter of 0, so OP
+is never asked for. Left open, in the note of issue 31.)
 """
 from __future__ import annotations
 
