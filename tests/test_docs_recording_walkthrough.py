@@ -4,9 +4,9 @@ Issue 34, must show 1: the walkthrough's console block, exactly as the docs prin
 and as tests/test_docs_commands.py runs it once, run 10 times in a row, each on a
 fresh simulator (the block starts its own ``epos-link sim``), each in a fresh
 directory with its own /tmp/ (the first exactly as printed, the other nine without
-record's PNG plot, see ``without_png``). Every run must pass as the block prints it (the
-trigger row, the last row at 20000 inc) and its move.csv must hold the move: positions that
-leave 0 after the trigger and reach the target. Before issue 34 the block passed about half the time:
+record's PNG plot, see ``without_png``). Every run must pass as the block prints it
+(the trigger row, the last row at 20000 inc) and its move.csv must hold the move:
+positions that leave 0 after the trigger and reach the target. Before issue 34 the block passed about half the time:
 ``examples/pp_move.py`` closed with TPDOs unread, the close was a TCP reset, and its
 last frame (the new set-point) never reached the bus, so ``record`` waited for ever.
 """

@@ -133,7 +133,7 @@ _SWITCH = _SwitchInterval()
 
 
 def state_name(state: int) -> str:
-    base = STATE_NAMES.get(state & 0x0F, f"0x{state & 0x0F:02X}")
+    base = STATE_NAMES.get(state & STATE_MASK, f"0x{state & STATE_MASK:02X}")
     return base + ("+ERROR" if state & ERROR else "")
 
 
