@@ -127,9 +127,12 @@ def ensure_tools(run: "Callable[..., Any]" = subprocess.run) -> "list[str]":
 
 
 # Issue 32: the whole suite runs on this many pytest-xdist workers. Most of a test's time
-# is waiting (for a subprocess, a socket, a drive's ramp), so four workers keep two cores
-# busy; tests that must not run together share a worker (tests/conftest.py: groups).
-WORKERS = 4
+# is waiting (for a subprocess, a socket, a drive's ramp), so it takes more workers than
+# cores to keep two cores busy: on this 2-core machine, quiet, four workers kept 1.6 of
+# them busy (306 s of pytest), six keep 1.84 (280 s), measured 2026-11-29 with
+# ``pytest -n 4|6 --dist loadgroup`` on 189ec52. Tests that must not run together share a
+# worker (tests/conftest.py: groups).
+WORKERS = 6
 
 
 def test_env() -> dict[str, str]:
