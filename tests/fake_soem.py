@@ -74,6 +74,7 @@ class FakeSlave:
         self.complete_access = True  # the SII offers CA (pysoem: _disable_complete_access)
         self.sdo_delay = 0.0  # seconds every CoE transfer takes (a slave that answers late)
         self.lose = 0  # the next this many CoE transfers get no answer (frames lost on the line)
+        self.lose_reads = dict(master.lose_reads)  # index: its next this many reads get none
         self.transfers = 0  # CoE transfers tried
         self.ca_padding = True  # False: its CA answers leave out the padding byte (issue 31)
         self.recovered = 0
@@ -136,8 +137,11 @@ class FakeSlave:
             if self.sdo_delay:
                 time.sleep(self.sdo_delay)
             self.transfers += 1
-            if self.lose:
-                self.lose -= 1
+            if self.lose or self.lose_reads.get(index):
+                if self.lose:
+                    self.lose -= 1
+                else:
+                    self.lose_reads[index] -= 1
                 raise WkcError("lost", -2)
             if not self.present:
                 raise WkcError("no answer", 0)
@@ -287,6 +291,7 @@ class FakeMaster:
 
     count = 2
     fail_open = False
+    lose_reads: Dict[int, int] = {}  # each new slave's lose_reads (frames lost at set-up)
     instances: List["FakeMaster"] = []
 
     def __init__(self) -> None:

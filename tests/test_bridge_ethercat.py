@@ -316,3 +316,33 @@ def test_a_coe_transfer_whose_frames_got_no_answer_is_made_once_more(
     slave.lose = 2
     with pytest.raises(SlaveUnreachable, match="its mailbox did not answer"):
         backend.node(1).sdo.upload(0x1000, 0)
+
+
+def test_a_lost_frame_while_the_pdo_mapping_is_read_at_set_up_is_read_again(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The set-up's reads of the PDO mapping are CoE transfers like any other: one whose
+    frames got no answer is made once more (EthercatBackend._setup_read). Before, one lost
+    frame left the slave without its mapping (every object by SDO, for the bridge's life)
+    and the log said 'PDO mapping unreadable ()'; a second loss in a row still does, now
+    naming the error."""
+    caplog.set_level(logging.INFO, "tcp_bridge.backends.ethercat")
+    soem = FakeSoem(count=2)
+    soem.Master.lose_reads = {0x1A00: 1}
+    b = EthercatBackend(bus(), soem=soem)
+    try:
+        assert b.layouts[1] is not None and b.layouts[2] is not None
+        assert "slave 1: a CoE read of 0x1A00/0 at set-up got no answer (working counter -2): " \
+            "made once more" in caplog.text
+        assert "unreadable" not in caplog.text
+    finally:
+        b.close()
+    caplog.clear()
+    soem = FakeSoem(count=1)
+    soem.Master.lose_reads = {0x1A00: 2}
+    b = EthercatBackend(bus(), soem=soem)
+    try:
+        assert b.layouts[1] is None
+        assert "slave 1: PDO mapping unreadable (WkcError: ('lost', -2) (working counter -2)): " \
+            "every object by SDO" in caplog.text
+    finally:
+        b.close()

@@ -123,6 +123,13 @@ def _map_error(exc: BaseException) -> str:
     return f"{where}: {type(exc).__name__} {getattr(exc, 'error_code', '')} {desc}".rstrip()
 
 
+def _why(exc: BaseException) -> str:
+    """A pysoem error in words; its text alone can be empty (a WkcError printed as '')."""
+    wkc = getattr(exc, "wkc", None)
+    return (type(exc).__name__ + (f": {exc}" if str(exc) else "")
+            + (f" (working counter {wkc})" if wkc is not None else ""))
+
+
 # SOEM waits EC_TIMEOUTRET (2 ms) for each frame of a mailbox exchange or a state read.
 # CoE transfers now run beside the cycle (ethercat_cycle rule 1), so their frames share the
 # wire and the slaves with the process data; on a loaded host, or slaves that answer from
@@ -315,6 +322,20 @@ class EthercatBackend:
                 problems.append(f"slave {position}: {problem}")
         return "; ".join(problems) or None
 
+    def _setup_read(self, position: int, slave: Any, index: int, subindex: int) -> bytes:
+        """A CoE read of the set-up, made once more when its frames got no answer, as
+        every transfer of a running bus is (EthercatNode._twice): a frame lost on a loaded
+        host is not a slave without a PDO mapping, and a mapping left unread puts every
+        object of the slave on SDO for the bridge's life. (Under load a suite saw
+        'slave 2: PDO mapping unreadable (): every object by SDO', then 2S04=1 NAK.)"""
+        try:
+            return bytes(slave.sdo_read(index, subindex, ca=False))
+        except self.soem.WkcError as exc:
+            log.info("bus %s: slave %d: a CoE read of 0x%04X/%d at set-up got no answer "
+                     "(working counter %s): made once more", self.name, position, index,
+                     subindex, getattr(exc, "wkc", "?"))
+        return bytes(slave.sdo_read(index, subindex, ca=False))
+
     def _describe_state(self, position: int, slave: Any) -> str:
         code = int(getattr(slave, "al_status", 0) or 0)
         return (f"slave {position} is in {state_name(int(slave.state))}"
@@ -323,10 +344,10 @@ class EthercatBackend:
 
     def _layout(self, position: int, slave: Any) -> "tuple[Optional[pdo.Layout], str]":
         try:
-            layout = pdo.read_layout(lambda i, s: slave.sdo_read(i, s, ca=False))
+            layout = pdo.read_layout(lambda i, s: self._setup_read(position, slave, i, s))
         except Exception as exc:
             log.warning("bus %s: slave %d: PDO mapping unreadable (%s): every object by SDO",
-                        self.name, position, exc)
+                        self.name, position, _why(exc))
             return None, ""
         problem = pdo.layout_problem(layout, len(bytes(slave.output)), len(bytes(slave.input)))
         if problem:
