@@ -169,11 +169,25 @@ def enable_and_aim(sock: socket.socket) -> None:
     ok(sock, "1S04=1", "2S04=1", "1S02=40", "2S02=-16")  # LINR: each axis by its own 02
 
 
+def setpoint_frames(sim: object, since: float, first: Tuple[int, int]) -> List[Tuple[int, int]]:
+    """Both slaves' set-points after each frame that changed either (the other's is its
+    last), from ``first``: what the bridge sent, frame by frame."""
+    changes = sorted([(t, 0, sp) for t, sp in sent_setpoints(sim, 1, since)]
+                     + [(t, 1, sp) for t, sp in sent_setpoints(sim, 2, since)])
+    now, out = list(first), []
+    for i, (t, slave, sp) in enumerate(changes):
+        now[slave] = sp
+        if i + 1 == len(changes) or changes[i + 1][0] != t:  # the frame's last change
+            out.append((now[0], now[1]))
+    return out
+
+
 def test_linr_moves_both_slaves_along_one_line(server: Tuple[object, str], bridge) -> None:
     sock, _ = bridge
     enable_and_aim(sock)
     sampler = Sampler(server[0])
     start = sampler.now()
+    line_sent = time.time()
     ok(sock, "1S90=1")
     wait_until(lambda: ask(sock, "1R82")[1] == "1" and ask(sock, "2R82")[1] == "1", 60,
                "the line did not end in target")
@@ -182,8 +196,15 @@ def test_linr_moves_both_slaves_along_one_line(server: Tuple[object, str], bridg
     assert sampler.now()[1:3] == targets  # both exactly on their targets
     moving = [s for s in seen if s[1:3] != start[1:3]]
     assert len(moving) > 50, "too few samples during the move"
-    worst = max(abs((s[1] - start[1]) / (40 * FACTOR) - (s[2] - start[2]) / (-16 * FACTOR))
-                for s in moving)
+    # One line: in every frame, the two set-points the bridge sent are at the same
+    # fraction of their travel (here within 4e-5). From the set-points, as the stop test
+    # takes them: the drive models, read one after the other, lag the frames by however
+    # long this loaded process took to handle each; read so, the fractions differed by
+    # 0.031 once on six workers while every frame held one line.
+    frames = setpoint_frames(server[0], line_sent - 0.1, (start[1], start[2]))
+    assert len(frames) > 50, "too few frames during the move"
+    worst = max(abs((a - start[1]) / (40 * FACTOR) - (b - start[2]) / (-16 * FACTOR))
+                for a, b in frames)
     assert worst <= 0.02, f"progress fractions differ by {worst:.3f}"
     # the controlword stayed the enable's: both still OPERATION ENABLED after the line
     assert seen[-1][3] is State.OPERATION_ENABLED and seen[-1][4] is State.OPERATION_ENABLED
