@@ -127,12 +127,12 @@ def ensure_tools(run: "Callable[..., Any]" = subprocess.run) -> "list[str]":
 
 
 # Issue 32: the whole suite runs on this many pytest-xdist workers. Most of a test's time
-# is waiting (for a subprocess, a socket, a drive's ramp), so it takes more workers than
-# cores to keep two cores busy: on this 2-core machine, quiet, four workers kept 1.6 of
-# them busy (306 s of pytest), six keep 1.84 (280 s), measured 2026-11-29 with
-# ``pytest -n 4|6 --dist loadgroup`` on 189ec52. Tests that must not run together share a
-# worker (tests/conftest.py: groups).
-WORKERS = 6
+# is waiting (for a subprocess, a socket, a drive's ramp), so four workers keep two cores
+# busy; tests that must not run together share a worker (tests/conftest.py: groups).
+# Six were no faster here (2 cores, quiet, back to back on one clone: 290.7 s of pytest
+# against 292.2 s with four) for 60 s more CPU, and made the simulated EtherCAT slaves
+# late enough to lose frames.
+WORKERS = 4
 
 
 def test_env() -> dict[str, str]:

@@ -87,6 +87,10 @@ def group_of(path: Path) -> Optional[str]:
     return None
 
 
+# tryfirst: the markers must be in place before pytest-xdist's worker reads them in its own
+# pytest_collection_modifyitems (it appends "@group" to each nodeid; --dist loadgroup
+# schedules by that suffix).
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: List[pytest.Item]) -> None:
     grouped: Dict[str, List[pytest.Item]] = {name: [] for name in FIRST}
     slow: List[pytest.Item] = []
@@ -129,3 +133,18 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     marker = item.get_closest_marker("xdist_group")
     group = (marker.args[0] if marker.args else marker.kwargs.get("name")) if marker else None
     _nice(max(-20, BASE_NICE + AHEAD.get(str(group), 0)))
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node: object, ids: List[str]) -> None:
+    """On the xdist controller, under --dist loadgroup: the nodeid of every test of a
+    group must carry its "@group" (xdist's worker appends it; the scheduler groups by
+    it). If not, the groups are silently ignored (pytest 9.2 with pytest-xdist 3.8,
+    pytest-dev/pytest-xdist#1386): fail the run rather than run veth tests side by side."""
+    lost = [nodeid for nodeid in ids if "@" not in nodeid.rpartition("]")[2]
+            and group_of(Path(__file__).parent.parent / nodeid.split("::")[0]) is not None]
+    if lost and getattr(getattr(node, "config", None), "option", None) is not None \
+            and getattr(node.config.option, "dist", "") == "loadgroup":  # type: ignore[attr-defined]
+        raise pytest.UsageError(
+            f"--dist loadgroup does not group here: {lost[0]} has no @group suffix (pytest "
+            f"{pytest.__version__}; see pytest-dev/pytest-xdist#1386 and pyproject.toml)")
