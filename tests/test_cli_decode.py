@@ -106,7 +106,8 @@ SIX_MB = 3_000_000
                                 "record is"),
     ("0.0 TX " + "AB" * SIX_MB, "line 1: longer than 1048576 characters"),  # hex, but too long
     ("0.0 TX 90 02\n1.0 RX " + "A" * SIX_MB, "line 2: longer than 1048576 characters"),
-])
+], ids=["not-hex", "record-not-hex", "record-hex", "second-line"])  # a 6 MB id in
+# PYTEST_CURRENT_TEST, which every child inherits, makes exec fail (E2BIG) on pytest < 9.2
 @pytest.mark.parametrize("how", ["stdin", "file"])
 def test_a_6_mb_line_gives_a_short_error_line(tmp_path: Path, text: str, message: str,
                                               how: str) -> None:
