@@ -127,12 +127,12 @@ def ensure_tools(run: "Callable[..., Any]" = subprocess.run) -> "list[str]":
 
 
 # Issue 32: the whole suite runs on this many pytest-xdist workers. Most of a test's time
-# is waiting (for a subprocess, a socket, a drive's ramp), so four workers keep two cores
-# busy; tests that must not run together share a worker (tests/conftest.py: groups).
-# Six were no faster here (2 cores, quiet, back to back on one clone: 290.7 s of pytest
-# against 292.2 s with four) for 60 s more CPU, and made the simulated EtherCAT slaves
-# late enough to lose frames.
-WORKERS = 4
+# is waiting (for a subprocess, a socket, a drive's ramp), so it takes more workers than
+# cores to keep two cores busy; tests that must not run together share a worker
+# (tests/conftest.py: groups). On this 2-core machine, quiet, warm clone, 2026-11-29:
+# four 292.2 s and 295.8 s of pytest (1.64 cores busy), five 281.0 s; six were no faster
+# than four (290.7 s) for 60 s more CPU.
+WORKERS = 5
 
 
 def test_env() -> dict[str, str]:
