@@ -141,10 +141,12 @@ def pytest_xdist_node_collection_finished(node: object, ids: List[str]) -> None:
     group must carry its "@group" (xdist's worker appends it; the scheduler groups by
     it). If not, the groups are silently ignored (pytest 9.2 with pytest-xdist 3.8,
     pytest-dev/pytest-xdist#1386): fail the run rather than run veth tests side by side."""
+    config = getattr(node, "config", None)
+    if config is None or config.getoption("dist", None) != "loadgroup":
+        return
     lost = [nodeid for nodeid in ids if "@" not in nodeid.rpartition("]")[2]
             and group_of(Path(__file__).parent.parent / nodeid.split("::")[0]) is not None]
-    if lost and getattr(getattr(node, "config", None), "option", None) is not None \
-            and getattr(node.config.option, "dist", "") == "loadgroup":  # type: ignore[attr-defined]
+    if lost:
         raise pytest.UsageError(
             f"--dist loadgroup does not group here: {lost[0]} has no @group suffix (pytest "
             f"{pytest.__version__}; see pytest-dev/pytest-xdist#1386 and pyproject.toml)")
